@@ -1,0 +1,310 @@
+//! `manifest.toml`: what a capture set holds and how to check it. One entry per frame with its
+//! SHA-256, the rig the set was shot with, the image geometry and levels, the camera settings.
+
+use std::path::{Component, Path};
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+use crate::plane::SensorWindow;
+use crate::raw::Levels;
+
+pub const MANIFEST_FILE: &str = "manifest.toml";
+pub const FORMAT: &str = "psscan-capture";
+pub const VERSION: u32 = 1;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    pub format: String,
+    pub version: u32,
+    /// The rig the set was shot with, a file inside the set (a copy, so the set stands alone).
+    pub rig_file: String,
+    /// The calibration bundle the rig came from, when there was one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration_id: Option<String>,
+    pub image: ImageInfo,
+    pub camera: CameraSettings,
+    /// Present for sets rendered by `psscan synth`: where the ground truth lies.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub synthetic: Option<SyntheticInfo>,
+    #[serde(default)]
+    pub frames: Vec<FrameEntry>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImageInfo {
+    pub width: usize,
+    pub height: usize,
+    /// Where the image pixels sit on the sensor.
+    pub window: SensorWindow,
+    pub levels: Levels,
+    /// Exposure relative to the one the rig's LED powers were measured at.
+    pub exposure: f64,
+    /// How frames are stored: `dn16` = 16-bit RGB PNG/TIFF of raw digital numbers.
+    pub encoding: String,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct CameraSettings {
+    pub model: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub iso: Option<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shutter_s: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub aperture: Option<f64>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SyntheticInfo {
+    /// Folder (inside the set) with `normal.exr` and `albedo.exr`.
+    pub truth_dir: String,
+    /// The full render specification, so the set can be re-rendered.
+    pub spec_file: String,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FrameKind {
+    /// All LEDs off.
+    Dark,
+    /// One LED on.
+    Light,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FrameEntry {
+    pub kind: FrameKind,
+    /// LED index for `light` frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub light: Option<usize>,
+    /// File name relative to the set's folder.
+    pub file: String,
+    pub sha256: String,
+}
+
+impl Manifest {
+    pub fn parse(text: &str, path: &Path) -> Result<Manifest> {
+        // Check format and version first, so a newer manifest gets a message about versions
+        // rather than about some field this build does not know.
+        let table: toml::Table = toml::from_str(text)
+            .map_err(|e| Error::config(path, "syntax", e.message().to_string()))?;
+        match table.get("format").and_then(|v| v.as_str()) {
+            Some(FORMAT) => {}
+            other => {
+                return Err(Error::config(
+                    path,
+                    "format",
+                    format!("expected \"{FORMAT}\", found {other:?}: not a psscan capture set"),
+                ))
+            }
+        }
+        match table.get("version").and_then(|v| v.as_integer()) {
+            Some(v) if v == VERSION as i64 => {}
+            other => {
+                return Err(Error::config(
+                    path,
+                    "version",
+                    format!(
+                        "manifest version {other:?} is not supported by this psscan (reads \
+                         version {VERSION}); upgrade psscan"
+                    ),
+                ))
+            }
+        }
+        let manifest: Manifest = toml::from_str(text)
+            .map_err(|e| Error::config(path, "manifest", e.message().to_string()))?;
+        manifest.validate(path)?;
+        Ok(manifest)
+    }
+
+    pub fn to_toml_string(&self) -> String {
+        toml::to_string_pretty(self).expect("a manifest always serialises")
+    }
+
+    /// Structural checks that need no files: names stay inside the set, light indices are
+    /// unique, the image geometry is sane.
+    pub fn validate(&self, path: &Path) -> Result<()> {
+        let fail = |field: String, message: String| Err(Error::config(path, field, message));
+        check_inside(&self.rig_file).or_else(|m| fail("rig_file".into(), m))?;
+        if self.image.width == 0 || self.image.height == 0 {
+            return fail(
+                "image.width".into(),
+                "image size must be at least 1x1".into(),
+            );
+        }
+        if !(self.image.levels.white > self.image.levels.black
+            && self.image.levels.black.is_finite())
+        {
+            return fail(
+                "image.levels".into(),
+                "the white level must lie above the black level".into(),
+            );
+        }
+        if !(self.image.exposure.is_finite() && self.image.exposure > 0.0) {
+            return fail("image.exposure".into(), "must be positive".into());
+        }
+        let mut seen_lights = std::collections::HashSet::new();
+        let mut seen_dark = false;
+        for (i, frame) in self.frames.iter().enumerate() {
+            check_inside(&frame.file).or_else(|m| fail(format!("frames[{i}].file"), m))?;
+            match (frame.kind, frame.light) {
+                (FrameKind::Light, Some(k)) => {
+                    if !seen_lights.insert(k) {
+                        return fail(
+                            format!("frames[{i}].light"),
+                            format!("light {k} appears twice"),
+                        );
+                    }
+                }
+                (FrameKind::Light, None) => {
+                    return fail(
+                        format!("frames[{i}].light"),
+                        "a light frame needs its LED index".into(),
+                    )
+                }
+                (FrameKind::Dark, Some(_)) => {
+                    return fail(
+                        format!("frames[{i}].light"),
+                        "a dark frame has no LED".into(),
+                    )
+                }
+                (FrameKind::Dark, None) => {
+                    if seen_dark {
+                        return fail(format!("frames[{i}]"), "more than one dark frame".into());
+                    }
+                    seen_dark = true;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The entry for LED `k`.
+    pub fn light_frame(&self, k: usize) -> Option<&FrameEntry> {
+        self.frames
+            .iter()
+            .find(|f| f.kind == FrameKind::Light && f.light == Some(k))
+    }
+
+    pub fn dark_frame(&self) -> Option<&FrameEntry> {
+        self.frames.iter().find(|f| f.kind == FrameKind::Dark)
+    }
+}
+
+/// A file name in a manifest must be a plain relative path inside the set: no `..`, no
+/// absolute paths, no drive prefixes.
+fn check_inside(name: &str) -> std::result::Result<(), String> {
+    let path = Path::new(name);
+    if name.is_empty() {
+        return Err("empty file name".into());
+    }
+    for component in path.components() {
+        match component {
+            Component::Normal(_) | Component::CurDir => {}
+            _ => {
+                return Err(format!(
+                    "\"{name}\" leaves the capture set's folder; names must be relative paths inside it"
+                ))
+            }
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> Manifest {
+        Manifest {
+            format: FORMAT.into(),
+            version: VERSION,
+            rig_file: "rig.toml".into(),
+            calibration_id: None,
+            image: ImageInfo {
+                width: 4,
+                height: 3,
+                window: SensorWindow::FULL,
+                levels: Levels {
+                    black: 600.0,
+                    white: 15600.0,
+                },
+                exposure: 1.0,
+                encoding: "dn16".into(),
+            },
+            camera: CameraSettings {
+                model: "test".into(),
+                ..Default::default()
+            },
+            synthetic: None,
+            frames: vec![
+                FrameEntry {
+                    kind: FrameKind::Dark,
+                    light: None,
+                    file: "dark.png".into(),
+                    sha256: "00".into(),
+                },
+                FrameEntry {
+                    kind: FrameKind::Light,
+                    light: Some(0),
+                    file: "L00.png".into(),
+                    sha256: "11".into(),
+                },
+            ],
+        }
+    }
+
+    #[test]
+    fn round_trip() {
+        let m = sample();
+        let back = Manifest::parse(&m.to_toml_string(), Path::new("m.toml")).unwrap();
+        assert_eq!(m, back);
+        assert_eq!(back.light_frame(0).unwrap().file, "L00.png");
+        assert!(back.dark_frame().is_some());
+    }
+
+    #[test]
+    fn names_that_leave_the_set_are_refused() {
+        for bad in ["../x.png", "/etc/passwd", "a/../../b.png", ""] {
+            let mut m = sample();
+            m.frames[1].file = bad.into();
+            let err = Manifest::parse(&m.to_toml_string(), Path::new("m.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains("frames[1].file"), "{bad}: {err}");
+        }
+    }
+
+    #[test]
+    fn unknown_versions_and_formats_are_refused_clearly() {
+        let text = sample()
+            .to_toml_string()
+            .replace("version = 1", "version = 7");
+        let err = Manifest::parse(&text, Path::new("m.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("version") && err.contains("7"), "{err}");
+        let text = sample().to_toml_string().replace("psscan-capture", "other");
+        let err = Manifest::parse(&text, Path::new("m.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("not a psscan capture set"), "{err}");
+    }
+
+    #[test]
+    fn duplicate_lights_are_refused() {
+        let mut m = sample();
+        let dup = m.frames[1].clone();
+        m.frames.push(dup);
+        let err = Manifest::parse(&m.to_toml_string(), Path::new("m.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("appears twice"), "{err}");
+    }
+}

@@ -1,0 +1,389 @@
+//! A capture set on disk: writing one frame at a time without ever losing what is already
+//! there, and reading one back with every check a saved set needs before it is solved.
+
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+
+use super::manifest::{
+    CameraSettings, FrameEntry, FrameKind, ImageInfo, Manifest, SyntheticInfo, FORMAT,
+    MANIFEST_FILE, VERSION,
+};
+use crate::error::{Error, Result};
+use crate::fsutil::{create_dir_all, sha256_hex, write_atomic};
+use crate::plane::Frames;
+use crate::progress::Progress;
+use crate::raw::decode_dn_image;
+use crate::rig::Rig;
+
+pub const RIG_FILE: &str = "rig.toml";
+
+/// The file name psscan gives LED `k`'s frame.
+pub fn light_file_name(k: usize, extension: &str) -> String {
+    format!("L{k:02}.{extension}")
+}
+
+/// Builds a capture set frame by frame. Each frame is written atomically and the manifest is
+/// rewritten atomically after it, so an interruption leaves a valid set of the frames so far.
+pub struct CaptureSetWriter {
+    dir: PathBuf,
+    manifest: Manifest,
+}
+
+impl CaptureSetWriter {
+    /// Starts a new set in `dir` for `rig`. A folder that already holds a capture set is
+    /// refused unless `force`.
+    pub fn create(
+        dir: &Path,
+        rig: &Rig,
+        image: ImageInfo,
+        camera: CameraSettings,
+        force: bool,
+    ) -> Result<Self> {
+        let manifest_path = dir.join(MANIFEST_FILE);
+        if manifest_path.exists() && !force {
+            return Err(Error::Exists {
+                path: manifest_path,
+            });
+        }
+        create_dir_all(dir)?;
+        rig.save(&dir.join(RIG_FILE))?;
+        let writer = CaptureSetWriter {
+            dir: dir.to_path_buf(),
+            manifest: Manifest {
+                format: FORMAT.into(),
+                version: VERSION,
+                rig_file: RIG_FILE.into(),
+                calibration_id: None,
+                image,
+                camera,
+                synthetic: None,
+                frames: Vec::new(),
+            },
+        };
+        writer.write_manifest()?;
+        Ok(writer)
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    /// Stores one frame's encoded bytes as `file` and records it (replacing an earlier entry
+    /// for the same frame).
+    pub fn add_frame(
+        &mut self,
+        kind: FrameKind,
+        light: Option<usize>,
+        file: &str,
+        bytes: &[u8],
+    ) -> Result<()> {
+        write_atomic(&self.dir.join(file), bytes)?;
+        let entry = FrameEntry {
+            kind,
+            light,
+            file: file.into(),
+            sha256: sha256_hex(bytes),
+        };
+        self.manifest
+            .frames
+            .retain(|f| !(f.kind == kind && f.light == light));
+        self.manifest.frames.push(entry);
+        self.write_manifest()
+    }
+
+    pub fn set_synthetic(&mut self, info: SyntheticInfo) -> Result<()> {
+        self.manifest.synthetic = Some(info);
+        self.write_manifest()
+    }
+
+    fn write_manifest(&self) -> Result<()> {
+        write_atomic(
+            &self.dir.join(MANIFEST_FILE),
+            self.manifest.to_toml_string().as_bytes(),
+        )
+    }
+}
+
+/// A capture set opened for reading.
+pub struct CaptureSet {
+    pub dir: PathBuf,
+    pub manifest: Manifest,
+    pub rig: Rig,
+}
+
+impl CaptureSet {
+    /// Opens `dir`, parsing its manifest and its rig (or `rig`, when given, instead of the
+    /// one stored in the set).
+    pub fn open(dir: &Path, rig: Option<Rig>) -> Result<CaptureSet> {
+        let manifest_path = dir.join(MANIFEST_FILE);
+        if !manifest_path.is_file() {
+            return Err(Error::capture_set(
+                dir,
+                format!("no {MANIFEST_FILE}: not a capture set folder"),
+            ));
+        }
+        let text =
+            std::fs::read_to_string(&manifest_path).map_err(|e| Error::io(&manifest_path, e))?;
+        let manifest = Manifest::parse(&text, &manifest_path)?;
+        let rig = match rig {
+            Some(rig) => rig,
+            None => Rig::load(&dir.join(&manifest.rig_file))?,
+        };
+        Ok(CaptureSet {
+            dir: dir.to_path_buf(),
+            manifest,
+            rig,
+        })
+    }
+
+    /// Entries of the light frames in LED order; fails naming what is missing or extra.
+    pub fn light_entries(&self) -> Result<Vec<&FrameEntry>> {
+        let leds = self.rig.leds.len();
+        let extra: Vec<usize> = self
+            .manifest
+            .frames
+            .iter()
+            .filter_map(|f| f.light)
+            .filter(|&k| k >= leds)
+            .collect();
+        if !extra.is_empty() {
+            return Err(Error::capture_set(
+                &self.dir,
+                format!(
+                    "frames for lights {extra:?}, but the rig has only {leds} LEDs (0..{})",
+                    leds - 1
+                ),
+            ));
+        }
+        let missing: Vec<usize> = (0..leds)
+            .filter(|&k| self.manifest.light_frame(k).is_none())
+            .collect();
+        if !missing.is_empty() {
+            return Err(Error::capture_set(
+                &self.dir,
+                format!("missing frames for lights {missing:?}; resume the capture to shoot them"),
+            ));
+        }
+        Ok((0..leds)
+            .map(|k| self.manifest.light_frame(k).expect("checked above"))
+            .collect())
+    }
+
+    /// Reads a frame's bytes, refusing links and checking the recorded SHA-256.
+    pub fn read_frame_bytes(&self, entry: &FrameEntry) -> Result<(PathBuf, Vec<u8>)> {
+        let path = self.dir.join(&entry.file);
+        let meta = std::fs::symlink_metadata(&path).map_err(|e| Error::io(&path, e))?;
+        if meta.file_type().is_symlink() {
+            return Err(Error::image(
+                &path,
+                "is a symbolic link; capture set frames must be plain files inside the set",
+            ));
+        }
+        let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
+        let actual = sha256_hex(&bytes);
+        if actual != entry.sha256 {
+            return Err(Error::image(
+                &path,
+                format!(
+                    "SHA-256 mismatch: manifest says {}, file is {actual}; the file was changed \
+                     or damaged after capture",
+                    entry.sha256
+                ),
+            ));
+        }
+        Ok((path, bytes))
+    }
+
+    /// Verifies and decodes every light frame into linear planes (frames decode in parallel).
+    pub fn load_frames(&self, progress: &dyn Progress) -> Result<Frames> {
+        let entries = self.light_entries()?;
+        let image = &self.manifest.image;
+        if image.encoding != "dn16" {
+            return Err(Error::Unsupported(format!(
+                "{}: frame encoding \"{}\" is not supported by this build (supported: dn16)",
+                self.dir.display(),
+                image.encoding
+            )));
+        }
+        progress.begin("decode", entries.len() as u64);
+        let lights = entries
+            .par_iter()
+            .map(|entry| {
+                let (path, bytes) = self.read_frame_bytes(entry)?;
+                let dn = decode_dn_image(&bytes, &path)?;
+                if dn.width != image.width || dn.height != image.height {
+                    return Err(Error::image(
+                        &path,
+                        format!(
+                            "is {}x{}, the manifest says {}x{}",
+                            dn.width, dn.height, image.width, image.height
+                        ),
+                    ));
+                }
+                let frame = dn.to_light_frame(&image.levels);
+                progress.advance(1);
+                Ok(frame)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        progress.end();
+        Ok(Frames {
+            width: image.width,
+            height: image.height,
+            window: image.window,
+            lights,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plane::SensorWindow;
+    use crate::progress::Silent;
+    use crate::raw::{encode_png16, DnImage, Levels};
+
+    fn rig3() -> Rig {
+        let mut rig = Rig::default_rig();
+        rig.leds.truncate(3);
+        rig
+    }
+
+    fn image_info() -> ImageInfo {
+        ImageInfo {
+            width: 2,
+            height: 2,
+            window: SensorWindow::FULL,
+            levels: Levels {
+                black: 600.0,
+                white: 15600.0,
+            },
+            exposure: 1.0,
+            encoding: "dn16".into(),
+        }
+    }
+
+    fn frame_bytes(value: u16) -> Vec<u8> {
+        encode_png16(&DnImage {
+            width: 2,
+            height: 2,
+            data: vec![value; 12],
+        })
+        .unwrap()
+    }
+
+    fn write_set(dir: &Path, lights: usize) -> CaptureSetWriter {
+        let mut w =
+            CaptureSetWriter::create(dir, &rig3(), image_info(), CameraSettings::default(), false)
+                .unwrap();
+        for k in 0..lights {
+            w.add_frame(
+                FrameKind::Light,
+                Some(k),
+                &light_file_name(k, "png"),
+                &frame_bytes(1000 + k as u16),
+            )
+            .unwrap();
+        }
+        w
+    }
+
+    #[test]
+    fn a_written_set_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        write_set(dir.path(), 3);
+        let set = CaptureSet::open(dir.path(), None).unwrap();
+        let frames = set.load_frames(&Silent).unwrap();
+        assert_eq!(frames.lights.len(), 3);
+        let expected = (1002.0 - 600.0) / 15000.0;
+        assert!((frames.lights[2].rgb.g.data[0] as f64 - expected).abs() < 1e-7);
+    }
+
+    #[test]
+    fn an_interrupted_set_keeps_its_frames_and_names_the_missing_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        write_set(dir.path(), 2);
+        let set = CaptureSet::open(dir.path(), None).unwrap();
+        assert_eq!(set.manifest.frames.len(), 2);
+        let err = set.load_frames(&Silent).unwrap_err().to_string();
+        assert!(err.contains("missing frames for lights [2]"), "{err}");
+    }
+
+    #[test]
+    fn an_existing_set_is_not_overwritten_without_force() {
+        let dir = tempfile::tempdir().unwrap();
+        write_set(dir.path(), 3);
+        let err = CaptureSetWriter::create(
+            dir.path(),
+            &rig3(),
+            image_info(),
+            CameraSettings::default(),
+            false,
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(err.contains("--force"), "{err}");
+        assert!(CaptureSetWriter::create(
+            dir.path(),
+            &rig3(),
+            image_info(),
+            CameraSettings::default(),
+            true
+        )
+        .is_ok());
+    }
+
+    #[test]
+    fn a_damaged_frame_is_named() {
+        let dir = tempfile::tempdir().unwrap();
+        write_set(dir.path(), 3);
+        std::fs::write(dir.path().join("L01.png"), frame_bytes(2000)).unwrap();
+        let set = CaptureSet::open(dir.path(), None).unwrap();
+        let err = set.load_frames(&Silent).unwrap_err().to_string();
+        assert!(err.contains("L01.png") && err.contains("SHA-256"), "{err}");
+    }
+
+    #[test]
+    fn a_frame_of_the_wrong_size_is_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = write_set(dir.path(), 3);
+        let big = encode_png16(&DnImage {
+            width: 3,
+            height: 2,
+            data: vec![700; 18],
+        })
+        .unwrap();
+        w.add_frame(FrameKind::Light, Some(1), "L01.png", &big)
+            .unwrap();
+        let set = CaptureSet::open(dir.path(), None).unwrap();
+        let err = set.load_frames(&Silent).unwrap_err().to_string();
+        assert!(err.contains("L01.png") && err.contains("3x2"), "{err}");
+    }
+
+    #[test]
+    fn a_frame_that_is_a_link_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        write_set(dir.path(), 3);
+        let target = dir.path().join("elsewhere.png");
+        std::fs::rename(dir.path().join("L00.png"), &target).unwrap();
+        std::os::unix::fs::symlink(&target, dir.path().join("L00.png")).unwrap();
+        let set = CaptureSet::open(dir.path(), None).unwrap();
+        let err = set.load_frames(&Silent).unwrap_err().to_string();
+        assert!(err.contains("L00.png") && err.contains("link"), "{err}");
+    }
+
+    #[test]
+    fn a_folder_without_manifest_is_not_a_set() {
+        let dir = tempfile::tempdir().unwrap();
+        let err = CaptureSet::open(dir.path(), None)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("not a capture set"), "{err}");
+    }
+}

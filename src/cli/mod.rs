@@ -1,0 +1,326 @@
+//! Command-line interface: argument parsing (clap), progress bars, human and JSON summaries,
+//! exit codes. Thin by design: every command is one library call.
+//!
+//! Exit codes: 0 success, 1 failure (the message says what and where), 2 usage error.
+
+mod progress;
+
+use std::path::{Path, PathBuf};
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use psscan::maps::{MapOptions, NormalConvention};
+use psscan::pipeline::{self, DemoSummary, SolveJob};
+use psscan::rig::Rig;
+use psscan::solve::{LightModel, Method, SolveOptions};
+use psscan::synth::{Sheen, SynthSpec};
+
+use progress::Bars;
+
+#[derive(Parser)]
+#[command(
+    name = "psscan",
+    version,
+    about = "Photometric-stereo textile scanner: capture, calibrate, and solve RAW sets into albedo and normal maps"
+)]
+struct Cli {
+    /// Print a JSON summary on stdout instead of the human one.
+    #[arg(long, global = true)]
+    json: bool,
+    /// No progress bars.
+    #[arg(long, short, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render the synthetic textile and solve it with the default rig, in one go.
+    Demo(DemoArgs),
+    /// Render a synthetic capture set (frames, manifest, ground truth).
+    Synth(SynthArgs),
+    /// Solve a capture set into maps and a report.
+    Solve(SolveArgs),
+}
+
+#[derive(Args)]
+struct DemoArgs {
+    /// Folder for the demo's capture set (`capture/`) and maps (`maps/`); replaced if present.
+    #[arg(long, default_value = "psscan-demo")]
+    out: PathBuf,
+    #[command(flatten)]
+    scene: SceneArgs,
+    #[command(flatten)]
+    solve: SolveFlags,
+}
+
+#[derive(Args)]
+struct SynthArgs {
+    /// Folder to write the capture set into.
+    #[arg(long)]
+    out: PathBuf,
+    /// Rig description (default: the embedded default rig).
+    #[arg(long)]
+    rig: Option<PathBuf>,
+    /// Replace an existing capture set in the folder.
+    #[arg(long)]
+    force: bool,
+    #[command(flatten)]
+    scene: SceneArgs,
+}
+
+#[derive(Args)]
+struct SceneArgs {
+    /// Image width in pixels (a centred crop of the rig's sensor).
+    #[arg(long, default_value_t = 2048)]
+    width: usize,
+    /// Image height in pixels.
+    #[arg(long, default_value_t = 1536)]
+    height: usize,
+    /// Sensor pixels per image pixel (e.g. 4 covers 4x the field at 1/16 of the pixels).
+    #[arg(long, default_value_t = 1.0)]
+    step: f64,
+    /// Render cast shadows from the relief.
+    #[arg(long)]
+    shadows: bool,
+    /// Add the cloth sheen lobe (seed eq. 23).
+    #[arg(long)]
+    sheen: bool,
+    /// No photon or read noise (rounding and clipping remain).
+    #[arg(long)]
+    noise_free: bool,
+    /// Seed of the sensor noise.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+}
+
+impl SceneArgs {
+    fn spec(&self) -> SynthSpec {
+        let mut spec = SynthSpec::demo();
+        spec.width = self.width;
+        spec.height = self.height;
+        spec.step = self.step;
+        spec.scene.shadows = self.shadows;
+        spec.scene.shadow_fill = if self.shadows { 0.15 } else { 0.0 };
+        spec.scene.sheen = self.sheen.then(Sheen::default);
+        spec.noise_seed = (!self.noise_free).then_some(self.seed);
+        spec
+    }
+}
+
+#[derive(Args)]
+struct SolveArgs {
+    /// Capture set folder (holds manifest.toml).
+    set: PathBuf,
+    /// Folder for the maps and report.json.
+    #[arg(long)]
+    out: PathBuf,
+    /// Rig description to use instead of the copy stored in the set.
+    #[arg(long)]
+    rig: Option<PathBuf>,
+    /// Replace an existing solve in the output folder.
+    #[arg(long)]
+    force: bool,
+    #[command(flatten)]
+    solve: SolveFlags,
+}
+
+#[derive(Args, Clone)]
+struct SolveFlags {
+    /// Least-squares method.
+    #[arg(long, value_enum, default_value_t = MethodArg::Fast)]
+    method: MethodArg,
+    /// Light model: near point lights (per-pixel directions and falloff) or distant lights.
+    #[arg(long, value_enum, default_value_t = LightModelArg::Near)]
+    light_model: LightModelArg,
+    /// Store normal maps DirectX-style (+Y down) instead of OpenGL-style (+Y up).
+    #[arg(long)]
+    directx: bool,
+    /// Do not write PNG maps.
+    #[arg(long)]
+    no_png: bool,
+    /// Do not write EXR normal and albedo maps (the confidence EXR is always written).
+    #[arg(long)]
+    no_exr: bool,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum MethodArg {
+    /// 3x3 normal equations, closed form.
+    Fast,
+    /// SVD of the light matrix (the seed's method).
+    Svd,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum LightModelArg {
+    Near,
+    Distant,
+}
+
+impl SolveFlags {
+    fn job(&self) -> SolveJob {
+        SolveJob {
+            options: SolveOptions {
+                method: match self.method {
+                    MethodArg::Fast => Method::NormalEquations,
+                    MethodArg::Svd => Method::Svd,
+                },
+                light_model: match self.light_model {
+                    LightModelArg::Near => LightModel::Near,
+                    LightModelArg::Distant => LightModel::Distant,
+                },
+                ..SolveOptions::default()
+            },
+            maps: MapOptions {
+                normal_convention: if self.directx {
+                    NormalConvention::DirectX
+                } else {
+                    NormalConvention::OpenGl
+                },
+                png: !self.no_png,
+                exr: !self.no_exr,
+            },
+            rig: None,
+            force: false,
+        }
+    }
+}
+
+/// Runs the CLI; returns the process exit code.
+pub fn run() -> i32 {
+    let cli = Cli::parse();
+    let bars = Bars::new(cli.quiet);
+    let outcome = match &cli.command {
+        Command::Demo(args) => demo(args, cli.json, &bars),
+        Command::Synth(args) => synth(args, cli.json, &bars),
+        Command::Solve(args) => solve(args, cli.json, &bars),
+    };
+    match outcome {
+        Ok(()) => 0,
+        Err(err) => {
+            eprintln!("psscan: error: {err:#}");
+            1
+        }
+    }
+}
+
+fn load_rig(path: &Option<PathBuf>) -> psscan::Result<Rig> {
+    match path {
+        Some(p) => Rig::load(p),
+        None => Ok(Rig::default_rig()),
+    }
+}
+
+fn print_json<T: serde::Serialize>(value: &T) {
+    println!(
+        "{}",
+        serde_json::to_string_pretty(value).expect("serialisable")
+    );
+}
+
+fn demo(args: &DemoArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
+    let spec = args.scene.spec();
+    let summary = pipeline::run_demo(&args.out, &spec, &args.solve.job(), bars)?;
+    if json {
+        print_json(&summary);
+    } else {
+        print_demo(&summary);
+    }
+    Ok(())
+}
+
+fn print_demo(s: &DemoSummary) {
+    let t = |k: &str| s.timings_s.get(k).copied().unwrap_or(0.0);
+    println!(
+        "psscan demo: {}x{} synthetic textile, rig \"{}\" ({} LEDs), {} pixels solved",
+        s.width, s.height, s.rig, s.lights, s.solved_pixels
+    );
+    println!(
+        "  normal error  mean {:.3} deg, median {:.3}, p95 {:.3} (sensor-noise model predicts mean {:.3})",
+        s.normal_error_deg.mean,
+        s.normal_error_deg.median,
+        s.normal_error_deg.p95,
+        s.predicted_normal_error_deg.mean
+    );
+    println!(
+        "  albedo error  mean {:.2} %, median {:.2} %",
+        100.0 * s.albedo_rel_error.mean,
+        100.0 * s.albedo_rel_error.median
+    );
+    println!(
+        "  time          render+write {:.1} s, decode {:.1} s, solve {:.1} s, write maps {:.1} s, total {:.1} s",
+        t("synth_scene") + t("synth_render_and_write"),
+        t("solve_decode"),
+        t("solve_solve"),
+        t("solve_write"),
+        t("total")
+    );
+    println!("  capture set   {}", s.paths.capture.display());
+    println!("  maps          {}", s.paths.maps.display());
+}
+
+fn synth(args: &SynthArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
+    let rig = load_rig(&args.rig)?;
+    let spec = args.scene.spec();
+    let outcome = pipeline::write_synthetic_set(&rig, &spec, &args.out, args.force, bars)?;
+    if json {
+        print_json(&outcome);
+    } else {
+        println!(
+            "wrote synthetic capture set {} ({}x{}, {} lights + dark frame, ground truth in {}/truth)",
+            outcome.dir.display(),
+            outcome.width,
+            outcome.height,
+            outcome.lights,
+            outcome.dir.display()
+        );
+    }
+    Ok(())
+}
+
+fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
+    let mut job = args.solve.job();
+    job.force = args.force;
+    job.rig = args.rig.as_ref().map(|p| Rig::load(p)).transpose()?;
+    let report = pipeline::solve_capture_set(&args.set, &args.out, &job, bars)?;
+    if json {
+        print_json(&report);
+    } else {
+        print_solve(&args.set, &args.out, &report);
+    }
+    Ok(())
+}
+
+fn print_solve(set: &Path, out: &Path, report: &psscan::maps::Report) {
+    let solved = report.pixels.get("solved").copied().unwrap_or(0);
+    let total = report.width * report.height;
+    println!(
+        "solved {}: {}x{}, {} of {} pixels ({:.2} %), predicted normal error {:.3} deg",
+        set.display(),
+        report.width,
+        report.height,
+        solved,
+        total,
+        100.0 * solved as f64 / total.max(1) as f64,
+        report.predicted_normal_error_deg.mean
+    );
+    for (name, count) in &report.pixels {
+        if *name != "solved" && *count > 0 {
+            println!("  {name}: {count} pixels");
+        }
+    }
+    if let Some(truth) = &report.truth {
+        println!(
+            "  against ground truth: normal error mean {:.3} deg (p95 {:.3}), albedo error mean {:.2} %",
+            truth.normal_error_deg.mean,
+            truth.normal_error_deg.p95,
+            100.0 * truth.albedo_rel_error.mean
+        );
+    }
+    println!(
+        "  wrote {} in {:.1} s",
+        out.display(),
+        report.timings_s.get("total").copied().unwrap_or(0.0)
+    );
+}

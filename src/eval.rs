@@ -1,0 +1,108 @@
+//! Comparing a solve with ground truth (synthetic sets, benchmark scenes): angular error of
+//! the normals and relative error of the albedo, as summary statistics.
+
+use nalgebra::Vector3;
+use serde::Serialize;
+
+use crate::plane::Plane;
+use crate::solve::{PixelStatus, SolveResult};
+
+/// Mean, median, 95th percentile and maximum of a set of values.
+#[derive(Clone, Copy, Debug, Default, Serialize, PartialEq)]
+pub struct Stats {
+    pub mean: f64,
+    pub median: f64,
+    pub p95: f64,
+    pub max: f64,
+}
+
+impl Stats {
+    pub fn of(values: &mut [f64]) -> Stats {
+        if values.is_empty() {
+            return Stats::default();
+        }
+        values.sort_by(|a, b| a.total_cmp(b));
+        let at = |q: f64| values[((values.len() - 1) as f64 * q).round() as usize];
+        Stats {
+            mean: values.iter().sum::<f64>() / values.len() as f64,
+            median: at(0.5),
+            p95: at(0.95),
+            max: values[values.len() - 1],
+        }
+    }
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct TruthComparison {
+    /// Solved pixels compared.
+    pub pixels: usize,
+    pub normal_error_deg: Stats,
+    /// `|albedo - true| / true`, per channel, over solved pixels.
+    pub albedo_rel_error: Stats,
+}
+
+/// Angle between two vectors in degrees, accurate for tiny angles (atan2 of cross and dot).
+pub fn angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+    a.cross(b).norm().atan2(a.dot(b)).to_degrees()
+}
+
+/// Per-pixel angular error (degrees) of the solved normals; `None` where not solved.
+pub fn normal_errors_deg(result: &SolveResult, truth: &[Plane; 3]) -> Vec<Option<f64>> {
+    (0..result.status.len())
+        .map(|i| {
+            (result.status[i] == PixelStatus::Solved).then(|| {
+                let t = Vector3::new(
+                    truth[0].data[i] as f64,
+                    truth[1].data[i] as f64,
+                    truth[2].data[i] as f64,
+                );
+                angle_deg(&result.normal_at(i), &t)
+            })
+        })
+        .collect()
+}
+
+pub fn compare(result: &SolveResult, normal: &[Plane; 3], albedo: &[Plane; 3]) -> TruthComparison {
+    let mut angles: Vec<f64> = normal_errors_deg(result, normal)
+        .into_iter()
+        .flatten()
+        .collect();
+    let mut albedo_errors = Vec::with_capacity(angles.len() * 3);
+    for i in 0..result.status.len() {
+        if result.status[i] != PixelStatus::Solved {
+            continue;
+        }
+        for c in 0..3 {
+            let truth = albedo[c].data[i] as f64;
+            if truth > 0.0 {
+                albedo_errors.push((result.albedo[c].data[i] as f64 - truth).abs() / truth);
+            }
+        }
+    }
+    TruthComparison {
+        pixels: angles.len(),
+        normal_error_deg: Stats::of(&mut angles),
+        albedo_rel_error: Stats::of(&mut albedo_errors),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stats_of_a_known_list() {
+        let mut v: Vec<f64> = (1..=101).map(|x| x as f64).collect();
+        let s = Stats::of(&mut v);
+        assert_eq!((s.mean, s.median, s.p95, s.max), (51.0, 51.0, 96.0, 101.0));
+        assert_eq!(Stats::of(&mut []), Stats::default());
+    }
+
+    #[test]
+    fn tiny_angles_are_accurate() {
+        let a = Vector3::new(0.0, 0.0, 1.0);
+        let t = 1e-7f64;
+        let b = Vector3::new(t.sin(), 0.0, t.cos());
+        assert!((angle_deg(&a, &b) - t.to_degrees()).abs() < 1e-15);
+    }
+}

@@ -1,0 +1,26 @@
+//! psscan: a photometric-stereo textile scanner.
+//!
+//! The data's one way through the library (DESIGN.md): a [`rig::Rig`] describes the scanner;
+//! [`capture`] produces capture sets on disk (the synthetic rig in [`synth`] produces the same
+//! sets with ground truth); [`raw`] decodes frames into linear [`plane::Frames`]; [`solve`]
+//! turns frames into a [`solve::SolveResult`]; [`maps`] writes the maps and the report.
+//! [`pipeline`] strings the stages together for the CLI.
+
+// Pixel and channel loops index several parallel planes at once; an index reads better there
+// than zipped iterators.
+#![allow(clippy::needless_range_loop)]
+
+pub mod capture;
+pub mod error;
+pub mod eval;
+pub mod fsutil;
+pub mod maps;
+pub mod pipeline;
+pub mod plane;
+pub mod progress;
+pub mod raw;
+pub mod rig;
+pub mod solve;
+pub mod synth;
+
+pub use error::{Error, Result};

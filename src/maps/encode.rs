@@ -1,0 +1,130 @@
+//! Encodings of the solved maps for game engines: normal maps in OpenGL (+Y up) or DirectX
+//! (+Y down) convention stored as `n * 0.5 + 0.5`, and albedo in sRGB for PNG.
+
+use serde::{Deserialize, Serialize};
+
+use crate::plane::Plane;
+use crate::solve::{PixelStatus, SolveResult};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum NormalConvention {
+    /// +Y toward the top of the image (OpenGL, Blender, Unity).
+    #[default]
+    OpenGl,
+    /// +Y toward the bottom of the image (DirectX, Unreal).
+    DirectX,
+}
+
+impl NormalConvention {
+    /// The stored Y component for a world-frame (+Y up) normal's `y`.
+    #[inline]
+    pub fn y(self, y: f32) -> f32 {
+        match self {
+            NormalConvention::OpenGl => y,
+            NormalConvention::DirectX => -y,
+        }
+    }
+}
+
+/// The normal map as three planes in the requested convention; unsolved pixels are flat.
+pub fn normal_planes(result: &SolveResult, convention: NormalConvention) -> [Plane; 3] {
+    let [nx, ny, nz] = &result.normal;
+    let mut y = ny.clone();
+    for v in &mut y.data {
+        *v = convention.y(*v);
+    }
+    [nx.clone(), y, nz.clone()]
+}
+
+/// `[-1, 1]` to 16-bit unsigned: `round((v * 0.5 + 0.5) * 65535)`.
+#[inline]
+pub fn unit_to_u16(v: f32) -> u16 {
+    ((v.clamp(-1.0, 1.0) * 0.5 + 0.5) * 65535.0).round() as u16
+}
+
+/// 16-bit value back to `[-1, 1]`.
+#[inline]
+pub fn u16_to_unit(v: u16) -> f32 {
+    v as f32 / 65535.0 * 2.0 - 1.0
+}
+
+/// Linear to sRGB-encoded (IEC 61966-2-1), clamped to [0, 1].
+#[inline]
+pub fn linear_to_srgb(v: f32) -> f32 {
+    let v = v.clamp(0.0, 1.0);
+    if v <= 0.003_130_8 {
+        12.92 * v
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+#[inline]
+pub fn srgb_to_linear(v: f32) -> f32 {
+    if v <= 0.040_45 {
+        v / 12.92
+    } else {
+        ((v + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// Interleaved 16-bit RGB of the normal map.
+pub fn normal_rgb16(result: &SolveResult, convention: NormalConvention) -> Vec<u16> {
+    let planes = normal_planes(result, convention);
+    interleave(&planes, unit_to_u16)
+}
+
+/// Interleaved 16-bit sRGB of the albedo; unsolved pixels are black.
+pub fn albedo_rgb16(result: &SolveResult) -> Vec<u16> {
+    let mut out = interleave(&result.albedo, |v| {
+        (linear_to_srgb(v) * 65535.0).round() as u16
+    });
+    for (i, s) in result.status.iter().enumerate() {
+        if *s != PixelStatus::Solved {
+            out[i * 3..i * 3 + 3].fill(0);
+        }
+    }
+    out
+}
+
+fn interleave(planes: &[Plane; 3], f: impl Fn(f32) -> u16) -> Vec<u16> {
+    let n = planes[0].len();
+    let mut out = Vec::with_capacity(n * 3);
+    for i in 0..n {
+        for p in planes {
+            out.push(f(p.data[i]));
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unit_encoding_round_trips_within_half_a_step() {
+        for &v in &[-1.0f32, -0.5, 0.0, 0.123, 0.999, 1.0] {
+            assert!((u16_to_unit(unit_to_u16(v)) - v).abs() <= 1.0 / 65535.0);
+        }
+        assert_eq!(unit_to_u16(0.0), 32768);
+        assert_eq!(unit_to_u16(1.0), 65535);
+        assert_eq!(unit_to_u16(-1.0), 0);
+    }
+
+    #[test]
+    fn srgb_round_trip_and_known_points() {
+        for i in 0..=100 {
+            let v = i as f32 / 100.0;
+            assert!((srgb_to_linear(linear_to_srgb(v)) - v).abs() < 1e-5);
+        }
+        assert!((linear_to_srgb(0.18) - 0.4614).abs() < 1e-3);
+    }
+
+    #[test]
+    fn directx_flips_only_y() {
+        assert_eq!(NormalConvention::OpenGl.y(0.3), 0.3);
+        assert_eq!(NormalConvention::DirectX.y(0.3), -0.3);
+    }
+}

@@ -1,0 +1,87 @@
+//! `report.json`: the figures of one solve, for people and for scripts.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+
+use super::WrittenMaps;
+use crate::error::Result;
+use crate::eval::TruthComparison;
+use crate::fsutil::write_atomic;
+use crate::solve::{PixelStatus, SolveOptions, SolveResult};
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Report {
+    pub psscan_version: &'static str,
+    pub capture: PathBuf,
+    pub rig: String,
+    pub width: usize,
+    pub height: usize,
+    pub options: SolveOptions,
+    /// Pixel count per status (`solved`, `dark`, `saturated`, ...).
+    pub pixels: BTreeMap<&'static str, usize>,
+    pub residual_mean: f64,
+    pub predicted_normal_error_deg: Mean,
+    /// Errors against ground truth, when the capture set has it (synthetic sets).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub truth: Option<TruthComparison>,
+    pub timings_s: BTreeMap<String, f64>,
+    pub outputs: WrittenMaps,
+}
+
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct Mean {
+    pub mean: f64,
+}
+
+impl Report {
+    pub fn new(
+        capture: &Path,
+        rig: &str,
+        result: &SolveResult,
+        options: &SolveOptions,
+        outputs: WrittenMaps,
+    ) -> Self {
+        let pixels = PixelStatus::ALL
+            .iter()
+            .map(|&s| (s.name(), result.count(s)))
+            .collect();
+        let solved: Vec<usize> = (0..result.status.len())
+            .filter(|&i| result.status[i] == PixelStatus::Solved)
+            .collect();
+        let residual_mean = if solved.is_empty() {
+            0.0
+        } else {
+            solved
+                .iter()
+                .map(|&i| result.residual.data[i] as f64)
+                .sum::<f64>()
+                / solved.len() as f64
+        };
+        Report {
+            psscan_version: env!("CARGO_PKG_VERSION"),
+            capture: capture.to_path_buf(),
+            rig: rig.to_string(),
+            width: result.width,
+            height: result.height,
+            options: options.clone(),
+            pixels,
+            residual_mean,
+            predicted_normal_error_deg: Mean {
+                mean: result.mean_predicted_error_deg(),
+            },
+            truth: None,
+            timings_s: BTreeMap::new(),
+            outputs,
+        }
+    }
+
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("a report always serialises")
+    }
+
+    pub fn write(&self, path: &Path) -> Result<()> {
+        write_atomic(path, self.to_json().as_bytes())
+    }
+}

@@ -1,0 +1,311 @@
+//! The per-pixel work: gather the usable measurements, solve the 3x3 (or SVD) least-squares
+//! problem for the four right-hand sides, and derive normal, albedo, residual, condition and
+//! predicted error.
+
+use nalgebra::{DMatrix, Matrix3, Vector3};
+
+use super::lights::Illumination;
+use super::predict::expected_angle_error;
+use super::{
+    Method, NoiseModel, PixelStatus, SolveInput, SolveOptions, SolveResult, LUMINANCE_WEIGHTS,
+};
+use crate::plane::Frames;
+
+/// `lights_used` is stored as a byte.
+pub const MAX_LIGHTS: usize = 255;
+
+/// One light's usable measurement at one pixel, already divided by the light's intensity.
+#[derive(Clone, Copy)]
+struct Measurement {
+    /// Unit direction toward the light.
+    l: Vector3<f64>,
+    /// `I'` per colour channel: measured value over the white-surface signal.
+    rgb: [f64; 3],
+    /// Luminance of `rgb`.
+    lum: f64,
+    /// Noise variance of `lum`.
+    var: f64,
+}
+
+/// Per-thread buffer reused across pixels so the inner loop does not allocate.
+pub struct Scratch {
+    measurements: Vec<Measurement>,
+}
+
+impl Scratch {
+    pub fn with_capacity(lights: usize) -> Self {
+        Scratch {
+            measurements: Vec::with_capacity(lights),
+        }
+    }
+}
+
+/// One row of every output plane, borrowed mutably so rows can be solved in parallel.
+pub struct RowOut<'a> {
+    normal: [&'a mut [f32]; 3],
+    albedo: [&'a mut [f32]; 3],
+    residual: &'a mut [f32],
+    predicted: &'a mut [f32],
+    condition: &'a mut [f32],
+    lights: &'a mut [u8],
+    pub status: &'a mut [PixelStatus],
+}
+
+impl<'a> RowOut<'a> {
+    pub fn split(result: &'a mut SolveResult) -> Vec<RowOut<'a>> {
+        let w = result.width.max(1);
+        let [nx, ny, nz] = &mut result.normal;
+        let [ar, ag, ab] = &mut result.albedo;
+        let mut nx = nx.data.chunks_mut(w);
+        let mut ny = ny.data.chunks_mut(w);
+        let mut nz = nz.data.chunks_mut(w);
+        let mut ar = ar.data.chunks_mut(w);
+        let mut ag = ag.data.chunks_mut(w);
+        let mut ab = ab.data.chunks_mut(w);
+        let mut residual = result.residual.data.chunks_mut(w);
+        let mut predicted = result.predicted_error_deg.data.chunks_mut(w);
+        let mut condition = result.condition.data.chunks_mut(w);
+        let mut lights = result.lights_used.chunks_mut(w);
+        let mut status = result.status.chunks_mut(w);
+        (0..result.height)
+            .map(|_| RowOut {
+                normal: [nx.next(), ny.next(), nz.next()].map(Option::unwrap),
+                albedo: [ar.next(), ag.next(), ab.next()].map(Option::unwrap),
+                residual: residual.next().unwrap(),
+                predicted: predicted.next().unwrap(),
+                condition: condition.next().unwrap(),
+                lights: lights.next().unwrap(),
+                status: status.next().unwrap(),
+            })
+            .collect()
+    }
+}
+
+/// The least-squares solution at one pixel, before it is turned into outputs.
+struct Fit {
+    /// Scaled normals: luminance first, then R, G, B.
+    n_lum: Vector3<f64>,
+    n_rgb: [Vector3<f64>; 3],
+    /// `(L^T L)^-1`, for the predicted error.
+    a_inv: Matrix3<f64>,
+    condition: f64,
+}
+
+pub struct Kernel<'a> {
+    frames: &'a Frames,
+    illumination: &'a Illumination,
+    noise: NoiseModel,
+    inv_exposure: f64,
+    dark_threshold: f64,
+    options: &'a SolveOptions,
+}
+
+/// Why measurements were dropped at a pixel, to name the reason when too few remain.
+#[derive(Default)]
+struct Dropped {
+    non_finite: usize,
+    saturated: usize,
+    dark: usize,
+}
+
+impl Dropped {
+    fn status(&self) -> PixelStatus {
+        if self.non_finite >= self.saturated && self.non_finite >= self.dark && self.non_finite > 0
+        {
+            PixelStatus::NonFinite
+        } else if self.saturated >= self.dark && self.saturated > 0 {
+            PixelStatus::Saturated
+        } else {
+            PixelStatus::Dark
+        }
+    }
+}
+
+impl<'a> Kernel<'a> {
+    pub fn new(
+        input: &'a SolveInput,
+        options: &'a SolveOptions,
+        illumination: &'a Illumination,
+    ) -> Self {
+        let weights_sq: f64 = LUMINANCE_WEIGHTS.iter().map(|w| w * w).sum();
+        Kernel {
+            frames: input.frames,
+            illumination,
+            noise: input.noise,
+            inv_exposure: 1.0 / input.exposure,
+            dark_threshold: options.dark_threshold_sigma * (input.noise.floor * weights_sq).sqrt(),
+            options,
+        }
+    }
+
+    /// Solves pixel `i` (column `x` of `row`) whose point on the sample is `point`.
+    pub fn solve_pixel(
+        &self,
+        i: usize,
+        point: &Vector3<f64>,
+        scratch: &mut Scratch,
+        row: &mut RowOut,
+        x: usize,
+    ) {
+        let dropped = self.gather(i, point, &mut scratch.measurements);
+        let measurements = &scratch.measurements;
+        row.lights[x] = measurements.len() as u8;
+        if measurements.len() < 3 {
+            row.status[x] = dropped.status();
+            return;
+        }
+        let fit = match self.options.method {
+            Method::NormalEquations => fit_normal_equations(measurements),
+            Method::Svd => fit_svd(measurements),
+        };
+        let Some(fit) = fit.filter(|f| f.condition <= self.options.max_condition) else {
+            row.status[x] = PixelStatus::Degenerate;
+            return;
+        };
+        self.write_outputs(&fit, measurements, row, x);
+    }
+
+    /// Collects the usable measurements at pixel `i`; returns why the others were dropped.
+    fn gather(&self, i: usize, point: &Vector3<f64>, out: &mut Vec<Measurement>) -> Dropped {
+        out.clear();
+        let mut dropped = Dropped::default();
+        for (k, frame) in self.frames.lights.iter().enumerate() {
+            let raw = [
+                frame.rgb.r.data[i],
+                frame.rgb.g.data[i],
+                frame.rgb.b.data[i],
+            ]
+            .map(|v| v as f64);
+            if raw.iter().any(|v| !v.is_finite()) {
+                dropped.non_finite += 1;
+                continue;
+            }
+            if frame.saturated.as_ref().is_some_and(|m| m.data[i]) {
+                dropped.saturated += 1;
+                continue;
+            }
+            let raw_lum: f64 = (0..3).map(|c| LUMINANCE_WEIGHTS[c] * raw[c]).sum();
+            if raw_lum <= self.dark_threshold {
+                dropped.dark += 1;
+                continue;
+            }
+            let light = self.illumination.sample(k, point);
+            if light.falloff <= 0.0 {
+                dropped.dark += 1;
+                continue;
+            }
+            let scale = self.illumination.rgb_scale(k);
+            let mut rgb = [0.0; 3];
+            let mut lum = 0.0;
+            let mut var = 0.0;
+            for c in 0..3 {
+                let inv_intensity = self.inv_exposure / (light.falloff * scale[c]);
+                rgb[c] = raw[c] * inv_intensity;
+                lum += LUMINANCE_WEIGHTS[c] * rgb[c];
+                var += (LUMINANCE_WEIGHTS[c] * inv_intensity).powi(2) * self.noise.variance(raw[c]);
+            }
+            out.push(Measurement {
+                l: light.direction,
+                rgb,
+                lum,
+                var,
+            });
+        }
+        dropped
+    }
+
+    fn write_outputs(&self, fit: &Fit, measurements: &[Measurement], row: &mut RowOut, x: usize) {
+        let albedo_lum = fit.n_lum.norm();
+        if !(albedo_lum > 1e-12 && albedo_lum.is_finite()) {
+            row.status[x] = PixelStatus::Dark;
+            return;
+        }
+        let n = fit.n_lum / albedo_lum;
+        let albedo = fit.n_rgb.map(|nc| nc.dot(&n));
+        let sum_sq: f64 = measurements
+            .iter()
+            .map(|m| (m.lum - fit.n_lum.dot(&m.l)).powi(2))
+            .sum();
+        let residual = (sum_sq / measurements.len() as f64).sqrt();
+        let predicted = if self.options.predict_error {
+            let mut noise = Matrix3::zeros();
+            for m in measurements {
+                noise += m.l * m.l.transpose() * m.var;
+            }
+            let cov = fit.a_inv * noise * fit.a_inv;
+            expected_angle_error(&fit.n_lum, &cov).to_degrees()
+        } else {
+            0.0
+        };
+        let values = [
+            n.x, n.y, n.z, albedo[0], albedo[1], albedo[2], residual, predicted,
+        ];
+        if values.iter().any(|v| !v.is_finite()) {
+            row.status[x] = PixelStatus::NonFinite;
+            return;
+        }
+        for c in 0..3 {
+            row.normal[c][x] = n[c] as f32;
+            row.albedo[c][x] = albedo[c] as f32;
+        }
+        row.residual[x] = residual as f32;
+        row.predicted[x] = predicted as f32;
+        row.condition[x] = fit.condition as f32;
+        row.status[x] = PixelStatus::Solved;
+    }
+}
+
+/// Least squares through the normal equations, inverted in closed form.
+fn fit_normal_equations(measurements: &[Measurement]) -> Option<Fit> {
+    let mut a = Matrix3::zeros();
+    let mut b_lum = Vector3::zeros();
+    let mut b_rgb = [Vector3::zeros(); 3];
+    for m in measurements {
+        a += m.l * m.l.transpose();
+        b_lum += m.l * m.lum;
+        for c in 0..3 {
+            b_rgb[c] += m.l * m.rgb[c];
+        }
+    }
+    let a_inv = a.try_inverse()?;
+    // Frobenius-norm condition number of A = L^T L, square-rooted to speak of L.
+    let condition = (a.norm() * a_inv.norm()).sqrt();
+    Some(Fit {
+        n_lum: a_inv * b_lum,
+        n_rgb: b_rgb.map(|b| a_inv * b),
+        a_inv,
+        condition,
+    })
+}
+
+/// Least squares through the singular value decomposition of `L` (the seed's method).
+fn fit_svd(measurements: &[Measurement]) -> Option<Fit> {
+    let m = measurements.len();
+    let l = DMatrix::from_fn(m, 3, |r, c| measurements[r].l[c]);
+    let rhs = DMatrix::from_fn(m, 4, |r, c| match c {
+        0 => measurements[r].lum,
+        _ => measurements[r].rgb[c - 1],
+    });
+    let svd = l.svd(true, true);
+    let sigma = &svd.singular_values;
+    if sigma.iter().any(|&s| !(s > 0.0 && s.is_finite())) {
+        return None;
+    }
+    let solution = svd.solve(&rhs, 0.0).ok()?;
+    let v_t = svd.v_t.as_ref()?;
+    // (L^T L)^-1 = V diag(1/sigma^2) V^T.
+    let mut a_inv = Matrix3::zeros();
+    for (k, s) in sigma.iter().enumerate() {
+        let v = Vector3::new(v_t[(k, 0)], v_t[(k, 1)], v_t[(k, 2)]);
+        a_inv += v * v.transpose() / (s * s);
+    }
+    let norm_a: f64 = sigma.iter().map(|s| s.powi(4)).sum::<f64>().sqrt();
+    let norm_a_inv: f64 = sigma.iter().map(|s| s.powi(-4)).sum::<f64>().sqrt();
+    let column = |c: usize| Vector3::new(solution[(0, c)], solution[(1, c)], solution[(2, c)]);
+    Some(Fit {
+        n_lum: column(0),
+        n_rgb: [column(1), column(2), column(3)],
+        a_inv,
+        condition: (norm_a * norm_a_inv).sqrt(),
+    })
+}

@@ -1,0 +1,266 @@
+//! Per-pixel photometric stereo (seed 004, eqs. 24-30): divide each measurement by the light's
+//! intensity at that pixel, solve `L N = I'` by least squares for the scaled normal `N` in
+//! four solves (R, G, B and luminance), normal = `N_lum / |N_lum|`, albedo from the colour
+//! solves. Pure math on planes: no file I/O, no printing.
+//!
+//! A measurement is left out of a pixel's fit when it is not finite, saturated, or dark (at or
+//! below `dark_threshold_sigma` times the sensor's noise floor: a light in attached or cast
+//! shadow reads zero whatever the normal, so it would only bias the fit). Pixels left with
+//! fewer than three lights, or with lights too close to coplanar, are flagged, never NaN.
+
+mod kernel;
+mod lights;
+mod predict;
+
+use nalgebra::Vector3;
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use crate::plane::{Frames, Mask, Plane};
+use crate::progress::Progress;
+use crate::rig::Rig;
+
+pub use lights::{Illumination, LightModel};
+pub use predict::{elliptic_e, expected_angle_error, NoiseModel};
+
+/// Rec. 709 luminance weights: the grayscale the normal is solved from (seed eq. 26).
+pub const LUMINANCE_WEIGHTS: [f64; 3] = [0.2126, 0.7152, 0.0722];
+
+/// How each pixel's least-squares problem is solved.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// The 3x3 normal equations `L^T L N = L^T I'`, inverted in closed form (f64). The fast
+    /// path: one small matrix shared by the four solves.
+    #[default]
+    NormalEquations,
+    /// The seed's method: singular value decomposition of `L` (nalgebra, f64). Slower; the
+    /// reference the fast path is checked against.
+    Svd,
+}
+
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct SolveOptions {
+    pub light_model: LightModel,
+    pub method: Method,
+    /// A measurement whose luminance is at or below this many standard deviations of the
+    /// sensor's noise floor counts as dark (shadowed) and is left out.
+    pub dark_threshold_sigma: f64,
+    /// Pixels whose light matrix has a condition number above this are flagged degenerate.
+    pub max_condition: f64,
+    /// Compute the per-pixel predicted error (a few more multiplies per light).
+    pub predict_error: bool,
+}
+
+impl Default for SolveOptions {
+    fn default() -> Self {
+        SolveOptions {
+            light_model: LightModel::Near,
+            method: Method::NormalEquations,
+            dark_threshold_sigma: 3.0,
+            max_condition: 1e3,
+            predict_error: true,
+        }
+    }
+}
+
+/// What the solve needs besides the options.
+pub struct SolveInput<'a> {
+    pub frames: &'a Frames,
+    pub rig: &'a Rig,
+    pub noise: NoiseModel,
+    /// Exposure of these frames relative to the one the rig's LED powers were measured at.
+    pub exposure: f64,
+    /// Pixels to solve (`true`); everything else is left as `OutsideMask`.
+    pub mask: Option<&'a Mask>,
+}
+
+/// Why a pixel has (or has not) a solution. Stored per pixel; `Solved` is the only state
+/// whose normal and albedo mean anything.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+#[repr(u8)]
+pub enum PixelStatus {
+    Solved = 0,
+    /// Not part of the requested mask.
+    OutsideMask = 1,
+    /// Fewer than three lights left, mostly because they were dark.
+    Dark = 2,
+    /// Fewer than three lights left, mostly because they were saturated.
+    Saturated = 3,
+    /// Fewer than three lights left, mostly because the inputs were NaN or infinite.
+    NonFinite = 4,
+    /// The remaining lights are too close to coplanar to determine a normal.
+    Degenerate = 5,
+}
+
+impl PixelStatus {
+    pub const ALL: [PixelStatus; 6] = [
+        PixelStatus::Solved,
+        PixelStatus::OutsideMask,
+        PixelStatus::Dark,
+        PixelStatus::Saturated,
+        PixelStatus::NonFinite,
+        PixelStatus::Degenerate,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            PixelStatus::Solved => "solved",
+            PixelStatus::OutsideMask => "outside_mask",
+            PixelStatus::Dark => "dark",
+            PixelStatus::Saturated => "saturated",
+            PixelStatus::NonFinite => "non_finite",
+            PixelStatus::Degenerate => "degenerate",
+        }
+    }
+}
+
+/// The solve's output, one value per pixel in planes of the frames' size. For pixels that are
+/// not `Solved` the normal is (0, 0, 1), the albedo 0 and the error figures 0.
+#[derive(Clone, Debug)]
+pub struct SolveResult {
+    pub width: usize,
+    pub height: usize,
+    /// Unit normal in the world frame (x right, y toward the top of the image, z up).
+    pub normal: [Plane; 3],
+    /// Linear RGB albedo (the colour solves projected on the normal).
+    pub albedo: [Plane; 3],
+    /// RMS residual of the luminance fit over the lights used, in albedo units.
+    pub residual: Plane,
+    /// Predicted mean angular error from sensor noise (degrees); 0 when not computed.
+    pub predicted_error_deg: Plane,
+    /// Condition number (Frobenius estimate) of the pixel's light matrix.
+    pub condition: Plane,
+    pub lights_used: Vec<u8>,
+    pub status: Vec<PixelStatus>,
+}
+
+impl SolveResult {
+    fn new(width: usize, height: usize) -> Self {
+        let plane = |v| Plane::new(width, height, v);
+        SolveResult {
+            width,
+            height,
+            normal: [plane(0.0), plane(0.0), plane(1.0)],
+            albedo: [plane(0.0), plane(0.0), plane(0.0)],
+            residual: plane(0.0),
+            predicted_error_deg: plane(0.0),
+            condition: plane(0.0),
+            lights_used: vec![0; width * height],
+            status: vec![PixelStatus::OutsideMask; width * height],
+        }
+    }
+
+    pub fn count(&self, status: PixelStatus) -> usize {
+        self.status.iter().filter(|&&s| s == status).count()
+    }
+
+    /// The unit normal at pixel index `i`.
+    pub fn normal_at(&self, i: usize) -> Vector3<f64> {
+        Vector3::new(
+            self.normal[0].data[i] as f64,
+            self.normal[1].data[i] as f64,
+            self.normal[2].data[i] as f64,
+        )
+    }
+
+    /// Mean of the predicted error over solved pixels (degrees).
+    pub fn mean_predicted_error_deg(&self) -> f64 {
+        let (sum, n) = self
+            .status
+            .iter()
+            .zip(&self.predicted_error_deg.data)
+            .filter(|(s, _)| **s == PixelStatus::Solved)
+            .fold((0.0, 0usize), |(sum, n), (_, &e)| (sum + e as f64, n + 1));
+        if n == 0 {
+            0.0
+        } else {
+            sum / n as f64
+        }
+    }
+}
+
+/// Solves every pixel of the frames. Rows are solved in parallel (rayon); `progress` sees one
+/// step per row.
+pub fn solve(
+    input: &SolveInput,
+    options: &SolveOptions,
+    progress: &dyn Progress,
+) -> Result<SolveResult> {
+    let frames = input.frames;
+    frames.validate()?;
+    check_inputs(input, options)?;
+    let (width, height) = (frames.width, frames.height);
+    let mapper = input.rig.camera.plane_mapper(input.rig.sample.z_m);
+    let (cu, cv) = frames
+        .window
+        .to_sensor((width as f64 - 1.0) / 2.0, (height as f64 - 1.0) / 2.0);
+    let reference = mapper.map(cu, cv).ok_or_else(|| {
+        Error::Invalid("the camera does not see the sample plane at the image centre".into())
+    })?;
+    let illumination = Illumination::new(input.rig, options.light_model, reference);
+    let kernel = kernel::Kernel::new(input, options, &illumination);
+
+    let mut result = SolveResult::new(width, height);
+    progress.begin("solve", height as u64);
+    let rows = kernel::RowOut::split(&mut result);
+    rows.into_par_iter().enumerate().for_each(|(y, mut row)| {
+        let mut scratch = kernel::Scratch::with_capacity(illumination.len());
+        for x in 0..width {
+            if input.mask.is_some_and(|m| !m.data[y * width + x]) {
+                continue;
+            }
+            let (u, v) = frames.window.to_sensor(x as f64, y as f64);
+            match mapper.map(u, v) {
+                Some(point) => kernel.solve_pixel(y * width + x, &point, &mut scratch, &mut row, x),
+                None => row.status[x] = PixelStatus::Degenerate,
+            }
+        }
+        progress.advance(1);
+    });
+    progress.end();
+    Ok(result)
+}
+
+fn check_inputs(input: &SolveInput, options: &SolveOptions) -> Result<()> {
+    let lights = input.frames.lights.len();
+    if lights != input.rig.leds.len() {
+        return Err(Error::Invalid(format!(
+            "the capture has {lights} light frames but the rig has {} LEDs",
+            input.rig.leds.len()
+        )));
+    }
+    if lights > kernel::MAX_LIGHTS {
+        return Err(Error::Invalid(format!(
+            "{lights} lights: psscan solves at most {} per capture",
+            kernel::MAX_LIGHTS
+        )));
+    }
+    if let Some(mask) = input.mask {
+        if mask.width != input.frames.width || mask.height != input.frames.height {
+            return Err(Error::Invalid(format!(
+                "mask is {}x{}, the capture is {}x{}",
+                mask.width, mask.height, input.frames.width, input.frames.height
+            )));
+        }
+    }
+    if !(input.exposure.is_finite() && input.exposure > 0.0) {
+        return Err(Error::Invalid(format!(
+            "exposure scale must be positive, got {}",
+            input.exposure
+        )));
+    }
+    let condition_ok = options.max_condition > 1.0 && !options.max_condition.is_nan();
+    let threshold_ok =
+        options.dark_threshold_sigma >= 0.0 && options.dark_threshold_sigma.is_finite();
+    if !condition_ok || !threshold_ok {
+        return Err(Error::Invalid(
+            "max_condition must exceed 1 and dark_threshold_sigma must be >= 0".into(),
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests;
