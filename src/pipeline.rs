@@ -177,7 +177,7 @@ pub fn solve_capture_set(
     let noise = noise_model(&set.rig, &set.manifest.image.levels);
     let input = SolveInput {
         frames: &frames,
-        rig: &set.rig,
+        lights: solve::LightSource::Rig(&set.rig),
         noise,
         exposure: set.manifest.image.exposure,
         mask: None,

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 
-pub use geometry::LightSample;
+pub use geometry::{LightSample, PlaneMapper};
 
 /// The rig that ships with psscan (`calibration/default/rig.toml`), embedded in the binary so
 /// `psscan demo` runs anywhere.

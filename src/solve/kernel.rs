@@ -93,7 +93,7 @@ struct Fit {
 
 pub struct Kernel<'a> {
     frames: &'a Frames,
-    illumination: &'a Illumination,
+    illumination: &'a Illumination<'a>,
     noise: NoiseModel,
     inv_exposure: f64,
     dark_threshold: f64,
@@ -125,7 +125,7 @@ impl<'a> Kernel<'a> {
     pub fn new(
         input: &'a SolveInput,
         options: &'a SolveOptions,
-        illumination: &'a Illumination,
+        illumination: &'a Illumination<'a>,
     ) -> Self {
         let weights_sq: f64 = LUMINANCE_WEIGHTS.iter().map(|w| w * w).sum();
         Kernel {

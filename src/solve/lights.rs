@@ -1,29 +1,49 @@
-//! The light matrix, per pixel: for each LED, the direction from the pixel's point on the
-//! sample toward the LED and the LED's intensity there. With near lights both change across
-//! the sample; ignoring that (distant lights) is the low-frequency error of seed Figure 10.
+//! The light matrix, per pixel: for each light, the direction from the pixel's point on the
+//! sample toward it and its intensity there. With near lights both change across the sample;
+//! ignoring that (distant lights) is the low-frequency error of seed Figure 10.
 
 use nalgebra::Vector3;
 
-use crate::rig::{LightSample, Rig};
+use crate::error::{Error, Result};
+use crate::plane::SensorWindow;
+use crate::rig::{LightSample, PlaneMapper, Rig};
 
-/// How the solve models the LEDs.
+/// How the solve models the LEDs of a rig.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum LightModel {
     /// Point sources: direction and inverse-square/beam falloff evaluated at every pixel.
     #[default]
     Near,
-    /// One direction and one intensity per LED, those at the reference point (as if the LEDs
-    /// were infinitely far away): the seed's model, kept for comparison.
+    /// One direction and one intensity per LED, those at the point seen by the centre pixel
+    /// (as if the LEDs were infinitely far away): the seed's model, kept for comparison.
     Distant,
 }
 
-/// Everything the solve needs to know about the LEDs, precomputed once per solve.
-pub struct Illumination {
-    leds: Vec<LedModel>,
+/// Where the lights come from.
+#[derive(Clone, Copy, Debug)]
+pub enum LightSource<'a> {
+    /// A rig's LEDs and camera: each pixel's point on the sample plane is known.
+    Rig(&'a Rig),
+    /// Distant lights given directly (photometric-stereo benchmarks such as DiLiGenT): unit
+    /// directions in the world frame and RGB intensities, one per light.
+    Directions {
+        directions: &'a [[f64; 3]],
+        intensities: &'a [[f64; 3]],
+    },
+}
+
+/// Everything the solve needs to know about the lights, precomputed once per solve.
+pub struct Illumination<'a> {
     model: LightModel,
-    /// For `Distant`: each LED's direction and falloff at the reference point.
+    leds: Vec<LedModel>,
+    /// Per light: the white-surface signal per colour channel, over the falloff.
+    rgb_scale: Vec<[f64; 3]>,
+    /// For distant lights: each light's direction and falloff everywhere.
     distant: Vec<LightSample>,
+    /// Pixel to sample-plane mapping (rigs only).
+    mapper: Option<PlaneMapper<'a>>,
+    window: SensorWindow,
 }
 
 struct LedModel {
@@ -31,60 +51,139 @@ struct LedModel {
     axis: Vector3<f64>,
     beam_exponent: f64,
     power: f64,
-    /// Linear signal per colour channel of a white surface at 1 m on axis, over `power`.
-    rgb_scale: [f64; 3],
 }
 
-impl Illumination {
-    /// `reference` is the point whose light the distant model uses everywhere (the sample
-    /// point at the centre of the frames).
-    pub fn new(rig: &Rig, model: LightModel, reference: Vector3<f64>) -> Self {
-        let leds: Vec<LedModel> = rig
-            .leds
-            .iter()
-            .enumerate()
-            .map(|(k, led)| {
-                let rgb = rig.led_rgb_power(k);
-                LedModel {
-                    position: led.position(),
-                    axis: led.axis(),
-                    beam_exponent: led.beam_exponent(),
-                    power: led.power,
-                    rgb_scale: rgb.map(|c| c / led.power),
-                }
-            })
-            .collect();
-        let distant = rig
-            .leds
-            .iter()
-            .map(|led| led.sample_at(&reference))
-            .collect();
-        Illumination {
-            leds,
-            model,
-            distant,
+impl<'a> Illumination<'a> {
+    /// Prepares the lights for frames of `width x height` pixels at `window` on the sensor.
+    pub fn new(
+        source: &LightSource<'a>,
+        model: LightModel,
+        width: usize,
+        height: usize,
+        window: SensorWindow,
+    ) -> Result<Self> {
+        match *source {
+            LightSource::Rig(rig) => Self::from_rig(rig, model, width, height, window),
+            LightSource::Directions {
+                directions,
+                intensities,
+            } => Self::from_directions(directions, intensities, window),
         }
     }
 
+    fn from_rig(
+        rig: &'a Rig,
+        model: LightModel,
+        width: usize,
+        height: usize,
+        window: SensorWindow,
+    ) -> Result<Self> {
+        let mapper = rig.camera.plane_mapper(rig.sample.z_m);
+        let (cu, cv) = window.to_sensor((width as f64 - 1.0) / 2.0, (height as f64 - 1.0) / 2.0);
+        let reference = mapper.map(cu, cv).ok_or_else(|| {
+            Error::Invalid("the camera does not see the sample plane at the image centre".into())
+        })?;
+        let leds = rig
+            .leds
+            .iter()
+            .map(|led| LedModel {
+                position: led.position(),
+                axis: led.axis(),
+                beam_exponent: led.beam_exponent(),
+                power: led.power,
+            })
+            .collect();
+        let rgb_scale = (0..rig.leds.len())
+            .map(|k| rig.led_rgb_power(k).map(|c| c / rig.leds[k].power))
+            .collect();
+        Ok(Illumination {
+            model,
+            leds,
+            rgb_scale,
+            distant: rig
+                .leds
+                .iter()
+                .map(|led| led.sample_at(&reference))
+                .collect(),
+            mapper: Some(mapper),
+            window,
+        })
+    }
+
+    fn from_directions(
+        directions: &[[f64; 3]],
+        intensities: &[[f64; 3]],
+        window: SensorWindow,
+    ) -> Result<Self> {
+        if directions.len() != intensities.len() {
+            return Err(Error::Invalid(format!(
+                "{} light directions but {} light intensities",
+                directions.len(),
+                intensities.len()
+            )));
+        }
+        let mut distant = Vec::with_capacity(directions.len());
+        for (k, d) in directions.iter().enumerate() {
+            let v = Vector3::from(*d);
+            let norm = v.norm();
+            if !(norm.is_finite() && norm > 0.0) {
+                return Err(Error::Invalid(format!(
+                    "light {k}: direction {d:?} is not a direction"
+                )));
+            }
+            if intensities[k].iter().any(|c| !(c.is_finite() && *c > 0.0)) {
+                return Err(Error::Invalid(format!(
+                    "light {k}: intensity {:?} must be positive",
+                    intensities[k]
+                )));
+            }
+            distant.push(LightSample {
+                direction: v / norm,
+                falloff: 1.0,
+            });
+        }
+        Ok(Illumination {
+            model: LightModel::Distant,
+            leds: Vec::new(),
+            rgb_scale: intensities.to_vec(),
+            distant,
+            mapper: None,
+            window,
+        })
+    }
+
     pub fn len(&self) -> usize {
-        self.leds.len()
+        self.rgb_scale.len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.leds.is_empty()
+        self.rgb_scale.is_empty()
     }
 
     pub fn model(&self) -> LightModel {
         self.model
     }
 
-    /// Per-channel factor that turns LED `k`'s falloff into the white-surface signal.
+    /// The point on the sample seen by frame pixel `(x, y)`; `None` when its ray misses the
+    /// sample plane. Lights given as bare directions need no point (the origin stands in).
     #[inline]
-    pub fn rgb_scale(&self, k: usize) -> [f64; 3] {
-        self.leds[k].rgb_scale
+    pub fn point(&self, x: usize, y: usize) -> Option<Vector3<f64>> {
+        match &self.mapper {
+            None => Some(Vector3::zeros()),
+            Some(mapper) => {
+                let (u, v) = self.window.to_sensor(x as f64, y as f64);
+                mapper.map(u, v)
+            }
+        }
     }
 
-    /// Direction toward LED `k` and its falloff at `point`, under this solve's light model.
+    /// Per-channel factor that turns light `k`'s falloff into the white-surface signal.
+    #[inline]
+    pub fn rgb_scale(&self, k: usize) -> [f64; 3] {
+        self.rgb_scale[k]
+    }
+
+    /// Direction toward light `k` and its falloff at `point`, under this solve's light model.
     #[inline]
     pub fn sample(&self, k: usize, point: &Vector3<f64>) -> LightSample {
         match self.model {
@@ -118,16 +217,42 @@ mod tests {
     #[test]
     fn near_model_matches_the_rig_and_distant_model_is_constant() {
         let rig = Rig::default_rig();
-        let reference = Vector3::zeros();
-        let near = Illumination::new(&rig, LightModel::Near, reference);
-        let distant = Illumination::new(&rig, LightModel::Distant, reference);
+        let window = SensorWindow::FULL;
+        let (w, h) = (rig.camera.width as usize, rig.camera.height as usize);
+        let source = LightSource::Rig(&rig);
+        let near = Illumination::new(&source, LightModel::Near, w, h, window).unwrap();
+        let distant = Illumination::new(&source, LightModel::Distant, w, h, window).unwrap();
+        // The default rig's principal point is the sensor centre, straight above the origin.
+        let centre = Vector3::zeros();
         let p = Vector3::new(0.15, -0.1, 0.0);
         for k in 0..rig.leds.len() {
             let expected = rig.leds[k].sample_at(&p);
             let got = near.sample(k, &p);
             assert!((got.direction - expected.direction).norm() < 1e-12);
             assert!((got.falloff - expected.falloff).abs() < 1e-12 * expected.falloff);
-            assert_eq!(distant.sample(k, &p), rig.leds[k].sample_at(&reference));
+            let reference = rig.leds[k].sample_at(&centre);
+            let d = distant.sample(k, &p);
+            assert!((d.direction - reference.direction).norm() < 1e-12);
+            assert!((d.falloff - reference.falloff).abs() < 1e-12);
         }
+    }
+
+    #[test]
+    fn bare_directions_are_normalised_and_checked() {
+        let dirs = [[0.0, 0.0, 2.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]];
+        let rgb = [[1.0; 3]; 3];
+        let source = LightSource::Directions {
+            directions: &dirs,
+            intensities: &rgb,
+        };
+        let ill = Illumination::new(&source, LightModel::Near, 4, 4, SensorWindow::FULL).unwrap();
+        assert_eq!(ill.model(), LightModel::Distant);
+        assert!((ill.sample(0, &Vector3::zeros()).direction - Vector3::z()).norm() < 1e-15);
+        let bad = [[0.0; 3], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]];
+        let source = LightSource::Directions {
+            directions: &bad,
+            intensities: &rgb,
+        };
+        assert!(Illumination::new(&source, LightModel::Distant, 4, 4, SensorWindow::FULL).is_err());
     }
 }

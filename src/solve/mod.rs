@@ -18,9 +18,8 @@ use rayon::prelude::*;
 use crate::error::{Error, Result};
 use crate::plane::{Frames, Mask, Plane};
 use crate::progress::Progress;
-use crate::rig::Rig;
 
-pub use lights::{Illumination, LightModel};
+pub use lights::{Illumination, LightModel, LightSource};
 pub use predict::{elliptic_e, expected_angle_error, NoiseModel};
 
 /// Rec. 709 luminance weights: the grayscale the normal is solved from (seed eq. 26).
@@ -67,7 +66,8 @@ impl Default for SolveOptions {
 /// What the solve needs besides the options.
 pub struct SolveInput<'a> {
     pub frames: &'a Frames,
-    pub rig: &'a Rig,
+    /// The lights: a rig (near or distant model) or bare distant directions.
+    pub lights: LightSource<'a>,
     pub noise: NoiseModel,
     /// Exposure of these frames relative to the one the rig's LED powers were measured at.
     pub exposure: f64,
@@ -190,16 +190,15 @@ pub fn solve(
 ) -> Result<SolveResult> {
     let frames = input.frames;
     frames.validate()?;
-    check_inputs(input, options)?;
     let (width, height) = (frames.width, frames.height);
-    let mapper = input.rig.camera.plane_mapper(input.rig.sample.z_m);
-    let (cu, cv) = frames
-        .window
-        .to_sensor((width as f64 - 1.0) / 2.0, (height as f64 - 1.0) / 2.0);
-    let reference = mapper.map(cu, cv).ok_or_else(|| {
-        Error::Invalid("the camera does not see the sample plane at the image centre".into())
-    })?;
-    let illumination = Illumination::new(input.rig, options.light_model, reference);
+    let illumination = Illumination::new(
+        &input.lights,
+        options.light_model,
+        width,
+        height,
+        frames.window,
+    )?;
+    check_inputs(input, options, &illumination)?;
     let kernel = kernel::Kernel::new(input, options, &illumination);
 
     let mut result = SolveResult::new(width, height);
@@ -211,8 +210,7 @@ pub fn solve(
             if input.mask.is_some_and(|m| !m.data[y * width + x]) {
                 continue;
             }
-            let (u, v) = frames.window.to_sensor(x as f64, y as f64);
-            match mapper.map(u, v) {
+            match illumination.point(x, y) {
                 Some(point) => kernel.solve_pixel(y * width + x, &point, &mut scratch, &mut row, x),
                 None => row.status[x] = PixelStatus::Degenerate,
             }
@@ -223,17 +221,17 @@ pub fn solve(
     Ok(result)
 }
 
-fn check_inputs(input: &SolveInput, options: &SolveOptions) -> Result<()> {
-    let lights = input.frames.lights.len();
-    if lights != input.rig.leds.len() {
+fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illumination) -> Result<()> {
+    let frames = input.frames.lights.len();
+    if frames != lights.len() {
         return Err(Error::Invalid(format!(
-            "the capture has {lights} light frames but the rig has {} LEDs",
-            input.rig.leds.len()
+            "the capture has {frames} light frames but there are {} lights",
+            lights.len()
         )));
     }
-    if lights > kernel::MAX_LIGHTS {
+    if frames > kernel::MAX_LIGHTS {
         return Err(Error::Invalid(format!(
-            "{lights} lights: psscan solves at most {} per capture",
+            "{frames} lights: psscan solves at most {} per capture",
             kernel::MAX_LIGHTS
         )));
     }

@@ -7,6 +7,7 @@ use crate::eval::{self, normal_errors_deg};
 use crate::plane::{LightFrame, RgbPlanes, SensorWindow};
 use crate::progress::Silent;
 use crate::raw::Levels;
+use crate::rig::Rig;
 use crate::synth::{expose, Noise, Scene, SceneOptions, SynthSpec, Textile};
 
 /// The textile under the default rig, `width x height` pixels every `step` sensor pixels,
@@ -39,7 +40,7 @@ fn solve_with(
 ) -> SolveResult {
     let input = SolveInput {
         frames,
-        rig,
+        lights: LightSource::Rig(rig),
         noise,
         exposure: 1.0,
         mask: None,
@@ -369,7 +370,7 @@ fn pixels_outside_the_mask_are_not_solved() {
     mask.data[2] = false;
     let input = SolveInput {
         frames: &frames,
-        rig: &rig,
+        lights: LightSource::Rig(&rig),
         noise: NoiseModel::NONE,
         exposure: 1.0,
         mask: Some(&mask),
@@ -386,7 +387,7 @@ fn mismatched_inputs_are_refused_with_a_reason() {
     frames.lights.pop();
     let input = SolveInput {
         frames: &frames,
-        rig: &rig,
+        lights: LightSource::Rig(&rig),
         noise: NoiseModel::NONE,
         exposure: 1.0,
         mask: None,
@@ -395,7 +396,7 @@ fn mismatched_inputs_are_refused_with_a_reason() {
         .unwrap_err()
         .to_string();
     assert!(
-        err.contains("9 light frames") && err.contains("10 LEDs"),
+        err.contains("9 light frames") && err.contains("10 lights"),
         "{err}"
     );
 }
@@ -422,7 +423,7 @@ fn exposure_scales_albedo_only() {
     let frames = scene.render_ideal(0.5, &Silent);
     let input = SolveInput {
         frames: &frames,
-        rig: &rig,
+        lights: LightSource::Rig(&rig),
         noise: NoiseModel::NONE,
         exposure: 0.5,
         mask: None,
