@@ -42,6 +42,15 @@ pub enum Error {
     /// A feature that is not built into this binary or not implemented yet.
     #[error("{0}")]
     Unsupported(String),
+
+    /// A device (LED controller, camera, firmware emulator) that failed, answered wrongly or
+    /// went away; `device` names it (for example `LED controller on /dev/ttyACM0`).
+    #[error("{device}: {message}")]
+    Device { device: String, message: String },
+
+    /// The operator stopped the work (Ctrl-C); the message says what state was left behind.
+    #[error("interrupted: {0}")]
+    Interrupted(String),
 }
 
 impl Error {
@@ -67,6 +76,13 @@ impl Error {
         Error::Config {
             path: path.as_ref().to_path_buf(),
             field: field.into(),
+            message: message.into(),
+        }
+    }
+
+    pub fn device(device: impl Into<String>, message: impl Into<String>) -> Self {
+        Error::Device {
+            device: device.into(),
             message: message.into(),
         }
     }

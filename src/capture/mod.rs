@@ -1,9 +1,17 @@
-//! Capture sets: the manifest and the on-disk set (written frame by frame, read back with
-//! every check). The LED controller, cameras and the sequencer join this module with the
-//! capture work (issue "Capture").
+//! Capture: the LED controller (serial protocol to the Arduino firmware, a mock, port
+//! discovery, keepalive), cameras (libgphoto2, external command, simulated), the firmware
+//! emulator and its pin log, the sequencer that shoots a set frame by frame, and capture sets
+//! on disk (manifest, atomic frame writes, checked reading, resume).
 
+pub mod camera;
+pub mod emulator;
+pub mod interrupt;
+pub mod lights;
 pub mod manifest;
+pub mod sequencer;
 pub mod set;
 
+pub use interrupt::Interrupt;
 pub use manifest::{CameraSettings, FrameEntry, FrameKind, ImageInfo, Manifest, SyntheticInfo};
-pub use set::{light_file_name, CaptureSet, CaptureSetWriter};
+pub use sequencer::{run_capture, CaptureOptions, CaptureReport, FrameRecord, FrameStatus};
+pub use set::{light_file_name, CaptureSet, CaptureSetWriter, DroppedFrame};

@@ -65,6 +65,35 @@ impl CaptureSetWriter {
         Ok(writer)
     }
 
+    /// Reopens the set in `dir` to complete it. Every frame it lists is checked (there, a
+    /// plain file, the SHA-256 recorded); frames that fail are dropped from the manifest,
+    /// which is rewritten at once, and returned with the reason, so they are shot again.
+    pub fn resume(dir: &Path) -> Result<(Self, Vec<DroppedFrame>)> {
+        let set = CaptureSet::open(dir, None)?;
+        let mut manifest = set.manifest.clone();
+        let mut dropped = Vec::new();
+        manifest
+            .frames
+            .retain(|entry| match set.read_frame_bytes(entry) {
+                Ok(_) => true,
+                Err(e) => {
+                    dropped.push(DroppedFrame {
+                        file: entry.file.clone(),
+                        reason: e.to_string(),
+                    });
+                    false
+                }
+            });
+        let writer = CaptureSetWriter {
+            dir: dir.to_path_buf(),
+            manifest,
+        };
+        if !dropped.is_empty() {
+            writer.write_manifest()?;
+        }
+        Ok((writer, dropped))
+    }
+
     pub fn dir(&self) -> &Path {
         &self.dir
     }
@@ -107,6 +136,13 @@ impl CaptureSetWriter {
             self.manifest.to_toml_string().as_bytes(),
         )
     }
+}
+
+/// A frame an interrupted set listed that could not be kept on resume, and why.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct DroppedFrame {
+    pub file: String,
+    pub reason: String,
 }
 
 /// A capture set opened for reading.

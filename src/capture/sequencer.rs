@@ -1,0 +1,746 @@
+//! The capture session: an all-off dark frame, then one frame per LED. Before each shot the
+//! controller is asked to confirm the LEDs (`STATE`) and the light settles; after it, the
+//! controller is asked again, so a frame whose LED went off during the shot (silence timeout,
+//! reset) is never kept. Each frame is moved into the set atomically, hashed and recorded,
+//! and the manifest is rewritten after every frame: whatever stops the session, the frames
+//! already taken stay valid and `resume` shoots only what is missing or damaged.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+
+use super::camera::{Camera, Shot};
+use super::interrupt::Interrupt;
+use super::lights::{FirmwareInfo, Keepalive, LightState, SharedLights};
+use super::manifest::{CameraSettings, FrameKind, SyntheticInfo, MANIFEST_FILE};
+use super::set::{light_file_name, CaptureSet, CaptureSetWriter, DroppedFrame};
+use crate::error::{Error, Result};
+use crate::progress::Progress;
+use crate::rig::Rig;
+
+/// How to run a session.
+#[derive(Clone, Debug)]
+pub struct CaptureOptions {
+    /// Wait between switching an LED and firing (LED warm-up, vibration).
+    pub settle: Duration,
+    /// Complete an interrupted set in the folder.
+    pub resume: bool,
+    /// Start over even if the folder holds a set.
+    pub force: bool,
+    /// Host-silence timeout to set on the controller; `None` keeps the firmware's.
+    pub light_timeout_ms: Option<u32>,
+    /// Ground truth of a synthetic scene, recorded in a new set's manifest.
+    pub synthetic: Option<SyntheticInfo>,
+}
+
+impl Default for CaptureOptions {
+    fn default() -> Self {
+        CaptureOptions {
+            settle: Duration::from_millis(250),
+            resume: false,
+            force: false,
+            light_timeout_ms: None,
+            synthetic: None,
+        }
+    }
+}
+
+/// What happened to one frame in this session.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FrameStatus {
+    /// Shot in this session.
+    Shot,
+    /// Already in the set and intact; not shot again.
+    Kept,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct FrameRecord {
+    pub file: String,
+    pub kind: FrameKind,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub light: Option<usize>,
+    pub sha256: String,
+    pub status: FrameStatus,
+    /// The controller's `STATE` right before the shot.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub state_before: Option<LightState>,
+    /// The LEDs the camera saw lit when it fired (simulated camera: from the pin log or the
+    /// mock).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lit_at_fire: Option<Vec<usize>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fired_unix_us: Option<u64>,
+}
+
+/// The session's summary (`psscan capture --json`).
+#[derive(Clone, Debug, Serialize)]
+pub struct CaptureReport {
+    pub dir: PathBuf,
+    pub controller: String,
+    pub firmware: FirmwareInfo,
+    pub camera: String,
+    pub camera_settings: CameraSettings,
+    pub frames: Vec<FrameRecord>,
+    pub shot: usize,
+    pub kept: usize,
+    /// Frames an earlier session left damaged or missing, shot again.
+    pub dropped: Vec<DroppedFrame>,
+    pub keepalive_pings: u64,
+    pub timings_s: BTreeMap<String, f64>,
+}
+
+/// One planned frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Planned {
+    Dark,
+    Light(usize),
+}
+
+impl Planned {
+    fn kind(&self) -> FrameKind {
+        match self {
+            Planned::Dark => FrameKind::Dark,
+            Planned::Light(_) => FrameKind::Light,
+        }
+    }
+
+    fn light(&self) -> Option<usize> {
+        match self {
+            Planned::Dark => None,
+            Planned::Light(k) => Some(*k),
+        }
+    }
+
+    fn label(&self) -> String {
+        match self {
+            Planned::Dark => "the dark frame (all LEDs off)".into(),
+            Planned::Light(k) => format!("frame L{k:02} (LED {k})"),
+        }
+    }
+
+    fn file(&self, extension: &str) -> String {
+        match self {
+            Planned::Dark => format!("dark.{extension}"),
+            Planned::Light(k) => light_file_name(*k, extension),
+        }
+    }
+}
+
+/// Runs a capture session into `dir` with `rig` (for a resumed set, the rig stored in the
+/// set is used and must match). On any failure the LEDs are switched off and the error says
+/// which frame failed, what is kept, and that `--resume` completes the set.
+pub fn run_capture(
+    dir: &Path,
+    rig: &Rig,
+    lights: &SharedLights,
+    camera: &mut dyn Camera,
+    options: &CaptureOptions,
+    interrupt: &Interrupt,
+    progress: &dyn Progress,
+) -> Result<CaptureReport> {
+    let total = Instant::now();
+    let (mut writer, dropped) = open_set(dir, rig, camera, options)?;
+    let controller = lights.lock().name();
+    let setup = (|| -> Result<(FirmwareInfo, u32)> {
+        let mut l = lights.lock();
+        let firmware = l.identify()?;
+        if rig.leds.len() > firmware.leds {
+            return Err(Error::device(
+                l.name(),
+                format!(
+                    "the rig has {} LEDs but the controller drives only {}",
+                    rig.leds.len(),
+                    firmware.leds
+                ),
+            ));
+        }
+        if let Some(ms) = options.light_timeout_ms {
+            l.set_timeout(ms)?;
+        }
+        l.off()?;
+        let timeout_ms = l.state()?.timeout_ms;
+        Ok((firmware, timeout_ms))
+    })();
+    let (firmware, timeout_ms) = match setup {
+        Ok(v) => v,
+        Err(e) => return Err(stopped(&writer, "setting up the LED controller", e, lights)),
+    };
+    let camera_settings = camera.settings()?;
+    let keepalive = Keepalive::start(
+        lights.clone(),
+        Duration::from_millis(timeout_ms as u64 / 3),
+        interrupt.clone(),
+    );
+
+    let plan: Vec<Planned> = std::iter::once(Planned::Dark)
+        .chain((0..rig.leds.len()).map(Planned::Light))
+        .collect();
+    let mut frames = Vec::new();
+    let todo: Vec<Planned> = plan
+        .iter()
+        .copied()
+        .filter(|p| existing(&writer, *p).is_none())
+        .collect();
+    progress.begin("capture", todo.len() as u64);
+    for planned in &plan {
+        if let Some(entry) = existing(&writer, *planned) {
+            frames.push(FrameRecord {
+                file: entry.file.clone(),
+                kind: entry.kind,
+                light: entry.light,
+                sha256: entry.sha256.clone(),
+                status: FrameStatus::Kept,
+                state_before: None,
+                lit_at_fire: None,
+                fired_unix_us: None,
+            });
+            continue;
+        }
+        let result = shoot(
+            *planned,
+            &mut writer,
+            lights,
+            camera,
+            &keepalive,
+            options,
+            interrupt,
+        );
+        match result {
+            Ok(record) => frames.push(record),
+            Err(e) => {
+                progress.end();
+                let what = planned.label();
+                drop(keepalive);
+                return Err(stopped(&writer, &what, e, lights));
+            }
+        }
+        progress.advance(1);
+    }
+    progress.end();
+    let pings = keepalive.pings();
+    drop(keepalive);
+    if let Err(e) = lights.lock().off() {
+        return Err(stopped(&writer, "switching the LEDs off at the end", e, lights));
+    }
+    let shot = frames
+        .iter()
+        .filter(|f| f.status == FrameStatus::Shot)
+        .count();
+    let mut timings = BTreeMap::new();
+    timings.insert("total".into(), total.elapsed().as_secs_f64());
+    Ok(CaptureReport {
+        dir: dir.to_path_buf(),
+        controller,
+        firmware,
+        camera: camera.name(),
+        camera_settings,
+        kept: frames.len() - shot,
+        shot,
+        frames,
+        dropped,
+        keepalive_pings: pings,
+        timings_s: timings,
+    })
+}
+
+/// The writer for this session: a new set, or the interrupted one to complete.
+fn open_set(
+    dir: &Path,
+    rig: &Rig,
+    camera: &dyn Camera,
+    options: &CaptureOptions,
+) -> Result<(CaptureSetWriter, Vec<DroppedFrame>)> {
+    let image = camera.image_info(rig);
+    let exists = dir.join(MANIFEST_FILE).is_file();
+    if exists && options.resume && !options.force {
+        let set = CaptureSet::open(dir, None)?;
+        if set.rig != *rig {
+            return Err(Error::capture_set(
+                dir,
+                format!(
+                    "was started with rig \"{}\" (stored in the set), this session uses rig \
+                     \"{}\" with other values; resume with the set's rig, or pass --force to \
+                     start over",
+                    set.rig.name, rig.name
+                ),
+            ));
+        }
+        let had = &set.manifest.image;
+        if had.encoding != image.encoding
+            || had.width != image.width
+            || had.height != image.height
+            || had.window != image.window
+            || had.exposure != image.exposure
+        {
+            return Err(Error::capture_set(
+                dir,
+                format!(
+                    "was started with other frames ({} {}x{}), this camera gives {} {}x{}; \
+                     resume with the same camera settings, or pass --force to start over",
+                    had.encoding, had.width, had.height, image.encoding, image.width, image.height
+                ),
+            ));
+        }
+        remove_scratch_files(dir);
+        return CaptureSetWriter::resume(dir);
+    }
+    if exists && !options.force {
+        let set = CaptureSet::open(dir, None)?;
+        let complete = set.manifest.dark_frame().is_some()
+            && (0..set.rig.leds.len()).all(|k| set.manifest.light_frame(k).is_some());
+        return Err(if complete {
+            Error::Exists {
+                path: dir.join(MANIFEST_FILE),
+            }
+        } else {
+            Error::capture_set(
+                dir,
+                format!(
+                    "holds an unfinished capture ({} of {} frames); pass --resume to complete \
+                     it, or --force to start over",
+                    set.manifest.frames.len(),
+                    set.rig.leds.len() + 1
+                ),
+            )
+        });
+    }
+    remove_scratch_files(dir);
+    let mut writer = CaptureSetWriter::create(dir, rig, image, CameraSettings::default(), true)?;
+    if let Some(info) = &options.synthetic {
+        writer.set_synthetic(info.clone())?;
+    }
+    Ok((writer, Vec::new()))
+}
+
+fn existing(writer: &CaptureSetWriter, planned: Planned) -> Option<&super::FrameEntry> {
+    match planned {
+        Planned::Dark => writer.manifest().dark_frame(),
+        Planned::Light(k) => writer.manifest().light_frame(k),
+    }
+}
+
+/// The camera's scratch file for a frame (inside the set, so the move is a rename).
+fn scratch_path(dir: &Path, planned: Planned) -> PathBuf {
+    dir.join(format!(".{}.shot", planned.file("x").trim_end_matches(".x")))
+}
+
+/// Leftovers of a session that stopped mid-shot.
+fn remove_scratch_files(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.starts_with('.') && name.ends_with(".shot") {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
+}
+
+/// Switch, confirm, settle, fire, confirm again, store.
+fn shoot(
+    planned: Planned,
+    writer: &mut CaptureSetWriter,
+    lights: &SharedLights,
+    camera: &mut dyn Camera,
+    keepalive: &Keepalive,
+    options: &CaptureOptions,
+    interrupt: &Interrupt,
+) -> Result<FrameRecord> {
+    let check_interrupt = || -> Result<()> {
+        if interrupt.is_set() {
+            Err(Error::Interrupted("Ctrl-C".into()))
+        } else {
+            Ok(())
+        }
+    };
+    check_interrupt()?;
+    let expected = planned.light();
+    let state_before = {
+        let mut l = lights.lock();
+        match expected {
+            Some(k) => l.on(k)?,
+            None => l.off()?,
+        }
+        let state = l.state()?;
+        confirm(&**l, planned, &state, "before the shot")?;
+        state
+    };
+    {
+        let _lease = keepalive.lease(options.settle + Duration::from_secs(1));
+        if !interrupt.sleep(options.settle) {
+            check_interrupt()?;
+        }
+    }
+    let scratch = scratch_path(writer.dir(), planned);
+    let stored = (|| -> Result<(Shot, String)> {
+        let shot: Shot = {
+            let _lease = keepalive.lease(camera.max_shot_time());
+            camera.capture(&scratch, interrupt)?
+        };
+        // Ctrl-C during the shot: the keepalive thread may have switched the LED off
+        // mid-exposure, so this frame is not kept.
+        check_interrupt()?;
+        {
+            let mut l = lights.lock();
+            let state = l.state()?;
+            confirm(&**l, planned, &state, "after the shot")?;
+        }
+        let bytes = std::fs::read(&scratch).map_err(|e| Error::io(&scratch, e))?;
+        let file = planned.file(&shot.extension);
+        writer.add_frame(planned.kind(), expected, &file, &bytes)?;
+        Ok((shot, file))
+    })();
+    let _ = std::fs::remove_file(&scratch);
+    let (shot, file) = stored?;
+    let entry = existing(writer, planned).expect("just added");
+    Ok(FrameRecord {
+        file,
+        kind: planned.kind(),
+        light: expected,
+        sha256: entry.sha256.clone(),
+        status: FrameStatus::Shot,
+        state_before: Some(state_before),
+        lit_at_fire: shot.lit,
+        fired_unix_us: Some(shot.fired_unix_us),
+    })
+}
+
+/// The controller's state must be the planned one; for a light frame after the shot,
+/// `tripped=0` proves the LED stayed on the whole time.
+fn confirm(
+    controller: &dyn super::lights::LightController,
+    planned: Planned,
+    state: &LightState,
+    when: &str,
+) -> Result<()> {
+    let expected = planned.light();
+    if state.on == expected && !(expected.is_some() && state.tripped) {
+        return Ok(());
+    }
+    let is = match state.on {
+        Some(k) => format!("LED {k} on"),
+        None => "all LEDs off".into(),
+    };
+    let want = match expected {
+        Some(k) => format!("LED {k} on"),
+        None => "all LEDs off".into(),
+    };
+    let why = if state.tripped {
+        format!(
+            " (tripped=1: the firmware switched the LED off by itself after {} ms without a \
+             word from the host; the host or camera stalled)",
+            state.timeout_ms
+        )
+    } else {
+        String::new()
+    };
+    Err(Error::device(
+        controller.name(),
+        format!("{when}: reports {is}, expected {want}{why}"),
+    ))
+}
+
+/// The error for a session that stopped: LEDs off (or why not), what is kept, how to go on.
+fn stopped(writer: &CaptureSetWriter, what: &str, cause: Error, lights: &SharedLights) -> Error {
+    let leds = lights.off_and_report();
+    let manifest = writer.manifest();
+    let kept: Vec<&str> = manifest.frames.iter().map(|f| f.file.as_str()).collect();
+    let kept = if kept.is_empty() {
+        "no frames kept".to_string()
+    } else {
+        format!("{} frames kept ({})", kept.len(), kept.join(", "))
+    };
+    let dir = writer.dir().display();
+    if let Error::Interrupted(_) = cause {
+        return Error::Interrupted(format!(
+            "capture into {dir} stopped at {what}; {leds}; {kept}; run the same command with \
+             --resume to complete the set"
+        ));
+    }
+    Error::capture_set(
+        writer.dir(),
+        format!(
+            "capture stopped at {what}: {cause}; {leds}; {kept}; run the same command with \
+             --resume to complete the set"
+        ),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::capture::camera::SimCamera;
+    use crate::capture::lights::{MockFault, MockLights};
+    use crate::progress::Silent;
+    use crate::synth::SynthSpec;
+
+    fn spec() -> SynthSpec {
+        let mut spec = SynthSpec::demo();
+        spec.width = 32;
+        spec.height = 24;
+        spec.step = 128.0;
+        spec
+    }
+
+    fn options() -> CaptureOptions {
+        CaptureOptions {
+            settle: Duration::from_millis(1),
+            ..Default::default()
+        }
+    }
+
+    /// A camera that fails on its `n`-th shot (0-based), then works.
+    struct FailOnce<'a> {
+        inner: SimCamera<'a>,
+        shots: usize,
+        fail_at: usize,
+    }
+
+    impl Camera for FailOnce<'_> {
+        fn name(&self) -> String {
+            self.inner.name()
+        }
+        fn settings(&mut self) -> Result<CameraSettings> {
+            self.inner.settings()
+        }
+        fn image_info(&self, rig: &Rig) -> super::super::ImageInfo {
+            self.inner.image_info(rig)
+        }
+        fn max_shot_time(&self) -> Duration {
+            self.inner.max_shot_time()
+        }
+        fn capture(&mut self, dest: &Path, interrupt: &Interrupt) -> Result<Shot> {
+            self.shots += 1;
+            if self.shots - 1 == self.fail_at {
+                return Err(Error::device("test camera", "shutter jammed"));
+            }
+            self.inner.capture(dest, interrupt)
+        }
+    }
+
+    #[test]
+    fn a_mock_session_shoots_dark_then_each_led_and_checks_state() {
+        let rig = Rig::default_rig();
+        let dir = tempfile::tempdir().unwrap();
+        let mock = MockLights::new(10);
+        let probe = mock.probe();
+        let lights = SharedLights::new(Box::new(mock));
+        let mut camera = SimCamera::new(&rig, &spec(), Box::new(probe.clone())).unwrap();
+        let report = run_capture(
+            dir.path(),
+            &rig,
+            &lights,
+            &mut camera,
+            &options(),
+            &Interrupt::new(),
+            &Silent,
+        )
+        .unwrap();
+        assert_eq!(report.shot, 11);
+        assert_eq!(report.frames[0].lit_at_fire, Some(vec![]));
+        for k in 0..10 {
+            assert_eq!(report.frames[k + 1].lit_at_fire, Some(vec![k]));
+            assert_eq!(report.frames[k + 1].file, format!("L{k:02}.png"));
+        }
+        let log = probe.log();
+        // Each light: ON, STATE (confirm), STATE (after the shot).
+        let on3 = log.iter().position(|l| l == "ON 3").unwrap();
+        assert_eq!(&log[on3..on3 + 3], ["ON 3", "STATE", "STATE"]);
+        assert!(probe.lit().is_empty());
+        let set = CaptureSet::open(dir.path(), None).unwrap();
+        assert_eq!(set.load_frames(&Silent).unwrap().lights.len(), 10);
+
+        // A complete set is not overwritten without --force, and resume has nothing to do.
+        let mut camera = SimCamera::new(&rig, &spec(), Box::new(probe.clone())).unwrap();
+        let again = run_capture(
+            dir.path(),
+            &rig,
+            &lights,
+            &mut camera,
+            &options(),
+            &Interrupt::new(),
+            &Silent,
+        );
+        assert!(again.unwrap_err().to_string().contains("--force"));
+        let resumed = run_capture(
+            dir.path(),
+            &rig,
+            &lights,
+            &mut camera,
+            &CaptureOptions {
+                resume: true,
+                ..options()
+            },
+            &Interrupt::new(),
+            &Silent,
+        )
+        .unwrap();
+        assert_eq!((resumed.shot, resumed.kept), (0, 11));
+    }
+
+    #[test]
+    fn a_failing_camera_keeps_earlier_frames_and_resume_reshoots_the_rest() {
+        let rig = Rig::default_rig();
+        let dir = tempfile::tempdir().unwrap();
+        let mock = MockLights::new(10);
+        let probe = mock.probe();
+        let lights = SharedLights::new(Box::new(mock));
+        let mut camera = FailOnce {
+            inner: SimCamera::new(&rig, &spec(), Box::new(probe.clone())).unwrap(),
+            shots: 0,
+            fail_at: 4,
+        };
+        let err = run_capture(
+            dir.path(),
+            &rig,
+            &lights,
+            &mut camera,
+            &options(),
+            &Interrupt::new(),
+            &Silent,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("LED 3") && err.contains("shutter jammed"), "{err}");
+        assert!(err.contains("all LEDs are off") && err.contains("--resume"), "{err}");
+        assert!(probe.lit().is_empty());
+        let set = CaptureSet::open(dir.path(), None).unwrap();
+        assert_eq!(set.manifest.frames.len(), 4);
+        // An incomplete set is not restarted by accident.
+        let err = run_capture(
+            dir.path(),
+            &rig,
+            &lights,
+            &mut camera,
+            &options(),
+            &Interrupt::new(),
+            &Silent,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("--resume"), "{err}");
+
+        // Damage a kept frame: resume re-shoots it too.
+        std::fs::write(dir.path().join("L01.png"), b"garbage").unwrap();
+        let report = run_capture(
+            dir.path(),
+            &rig,
+            &lights,
+            &mut camera,
+            &CaptureOptions {
+                resume: true,
+                ..options()
+            },
+            &Interrupt::new(),
+            &Silent,
+        )
+        .unwrap();
+        assert_eq!(report.kept, 3);
+        assert_eq!(report.shot, 8);
+        assert_eq!(report.dropped.len(), 1);
+        assert!(report.dropped[0].reason.contains("SHA-256"));
+        let set = CaptureSet::open(dir.path(), None).unwrap();
+        assert_eq!(set.load_frames(&Silent).unwrap().lights.len(), 10);
+    }
+
+    #[test]
+    fn a_controller_that_vanishes_or_refuses_stops_the_session_clearly() {
+        let rig = Rig::default_rig();
+        for (fault, needle) in [
+            (MockFault::VanishAt("ON 5".into()), "vanished"),
+            (MockFault::Refuse("ON 2".into(), 4), "ERR 4"),
+        ] {
+            let dir = tempfile::tempdir().unwrap();
+            let mock = MockLights::new(10).with_fault(fault);
+            let probe = mock.probe();
+            let lights = SharedLights::new(Box::new(mock));
+            let mut camera = SimCamera::new(&rig, &spec(), Box::new(probe.clone())).unwrap();
+            let options = CaptureOptions {
+                light_timeout_ms: Some(100),
+                ..options()
+            };
+            let err = run_capture(
+                dir.path(),
+                &rig,
+                &lights,
+                &mut camera,
+                &options,
+                &Interrupt::new(),
+                &Silent,
+            )
+            .unwrap_err()
+            .to_string();
+            assert!(err.contains(needle) && err.contains("--resume"), "{err}");
+            // A vanished controller cannot be told; its silence timeout switches off.
+            std::thread::sleep(Duration::from_millis(150));
+            assert!(probe.lit().is_empty(), "{err}");
+        }
+    }
+
+    #[test]
+    fn an_interrupt_stops_before_the_next_frame_and_keeps_the_set_resumable() {
+        let rig = Rig::default_rig();
+        let dir = tempfile::tempdir().unwrap();
+        let mock = MockLights::new(10);
+        let probe = mock.probe();
+        let lights = SharedLights::new(Box::new(mock));
+        let stop = Interrupt::new();
+        struct StopAt<'a> {
+            inner: SimCamera<'a>,
+            shots: usize,
+            stop: Interrupt,
+        }
+        impl Camera for StopAt<'_> {
+            fn name(&self) -> String {
+                "stopper".into()
+            }
+            fn settings(&mut self) -> Result<CameraSettings> {
+                self.inner.settings()
+            }
+            fn image_info(&self, rig: &Rig) -> super::super::ImageInfo {
+                self.inner.image_info(rig)
+            }
+            fn max_shot_time(&self) -> Duration {
+                Duration::from_secs(5)
+            }
+            fn capture(&mut self, dest: &Path, i: &Interrupt) -> Result<Shot> {
+                self.shots += 1;
+                if self.shots == 6 {
+                    // Ctrl-C while the shutter is open: this frame is not kept.
+                    self.stop.set();
+                }
+                self.inner.capture(dest, i)
+            }
+        }
+        let mut camera = StopAt {
+            inner: SimCamera::new(&rig, &spec(), Box::new(probe.clone())).unwrap(),
+            shots: 0,
+            stop: stop.clone(),
+        };
+        let err = run_capture(
+            dir.path(),
+            &rig,
+            &lights,
+            &mut camera,
+            &options(),
+            &stop,
+            &Silent,
+        )
+        .unwrap_err();
+        assert!(matches!(err, Error::Interrupted(_)), "{err}");
+        assert!(err.to_string().contains("--resume"));
+        assert!(probe.lit().is_empty());
+        let set = CaptureSet::open(dir.path(), None).unwrap();
+        assert_eq!(set.manifest.frames.len(), 5);
+        let names: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert!(names.iter().all(|n| !n.contains(".shot")), "{names:?}");
+    }
+}
