@@ -11,6 +11,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod capture;
+pub mod emulated;
 pub mod error;
 pub mod eval;
 pub mod fsutil;

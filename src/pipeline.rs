@@ -106,7 +106,9 @@ pub fn write_synthetic_set(
     })
 }
 
-fn write_truth(scene: &Scene, spec: &SynthSpec, dir: &Path) -> Result<()> {
+/// Writes a scene's ground truth (`truth/normal.exr`, `albedo.exr`, `height.exr`, `spec.toml`)
+/// into a capture set's folder.
+pub fn write_truth(scene: &Scene, spec: &SynthSpec, dir: &Path) -> Result<()> {
     let truth_dir = dir.join(TRUTH_DIR);
     create_dir_all(&truth_dir)?;
     let t = &scene.truth;

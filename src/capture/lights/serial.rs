@@ -60,9 +60,6 @@ enum LinkError {
     Refused { code: u32, reason: String },
 }
 
-/// The firmware's code for a line damaged on the way (bad byte or receive error).
-const ERR_BAD_CHARACTER: u32 = 5;
-
 /// The psscan LED controller on a serial port.
 pub struct SerialLights {
     port: Box<dyn SerialPort>,
@@ -174,17 +171,15 @@ impl SerialLights {
         }
     }
 
-    /// One command with one retry after a resynchronisation, for answers that went missing
-    /// or arrived damaged. Refusals (other than a damaged line) are not retried: the same
-    /// line would be refused again.
+    /// One command with one retry after a resynchronisation. The host only sends
+    /// well-formed lines, so a missing answer, a garbled one, or a refusal (`ERR 3` for a
+    /// short line, `ERR 5`, `ERR 1` for a known command) means the line was damaged on the
+    /// way; a second refusal is reported as the firmware's answer.
     fn command(&mut self, command: Command) -> Result<Answer> {
         let what = quote(&command.line());
         match self.exchange(command) {
             Ok(answer) => Ok(answer),
             Err(e @ LinkError::Vanished(_)) => Err(self.error(e, &what)),
-            Err(LinkError::Refused { code, reason }) if code != ERR_BAD_CHARACTER => {
-                Err(self.error(LinkError::Refused { code, reason }, &what))
-            }
             Err(_first) => {
                 self.resync().map_err(|e| self.error(e, &what))?;
                 self.exchange(command)
@@ -339,6 +334,9 @@ impl SerialLights {
 
 fn open_error(path: &str, e: serialport::Error) -> Error {
     let hint = match &e.kind {
+        _ if e.description.contains("lock") => {
+            " (the port is in use by another program, perhaps another psscan)"
+        }
         serialport::ErrorKind::NoDevice => " (no such device: is the board plugged in? `psscan lights ports` lists ports)",
         serialport::ErrorKind::Io(ErrorKind::NotFound) => {
             " (no such port: `psscan lights ports` lists ports)"

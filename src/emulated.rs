@@ -1,0 +1,223 @@
+//! The scanner without hardware: the LED firmware running in its emulator behind a
+//! pseudo-terminal (opened with psscan's real serial code), the simulated camera reading the
+//! emulator's pin log when it fires, a capture session through both, and the demo that then
+//! solves the set as `psscan demo` does. A newcomer sees the whole loop; the tests use the
+//! same pieces to put the firmware and the serial link in every capture test.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::capture::camera::{LitSource, SimCamera};
+use crate::capture::emulator::{Emulator, EmulatorFiles, PinLog};
+use crate::capture::lights::{FirmwareInfo, SerialLights, SerialOptions, SharedLights};
+use crate::capture::{run_capture, CaptureOptions, CaptureReport, Interrupt, SyntheticInfo};
+use crate::error::Result;
+use crate::fsutil::create_dir_all;
+use crate::maps::{self, report::Mean, WrittenMaps};
+use crate::pipeline::{self, DemoPaths, SolveJob, SPEC_FILE, TRUTH_DIR};
+use crate::progress::Progress;
+use crate::rig::Rig;
+use crate::synth::{Scene, SynthSpec};
+
+/// A running emulator with the serial link open on its pty.
+pub struct EmulatedController {
+    pub emulator: Emulator,
+    pub lights: SharedLights,
+    pub firmware: FirmwareInfo,
+}
+
+impl EmulatedController {
+    /// Starts the firmware emulator (pin log at `pin_log`) and opens its pty with the real
+    /// serial code. Call from a thread that outlives the controller (the emulator stops when
+    /// the thread that started it ends).
+    pub fn start(pin_log: &Path, options: SerialOptions) -> Result<EmulatedController> {
+        let files = EmulatorFiles::locate()?;
+        let emulator = Emulator::start(&files, pin_log)?;
+        let serial = SerialLights::open(emulator.pty(), options)?;
+        let firmware = serial.info().cloned().expect("open identifies the firmware");
+        Ok(EmulatedController {
+            emulator,
+            lights: SharedLights::new(Box::new(serial)),
+            firmware,
+        })
+    }
+
+    pub fn pin_log(&self) -> PinLog {
+        self.emulator.pin_log()
+    }
+}
+
+/// Writes the scene's ground truth into a capture set folder (for `psscan solve` to compare
+/// against) and returns what the manifest records about it.
+pub fn write_scene_truth(scene: &Scene, spec: &SynthSpec, dir: &Path) -> Result<SyntheticInfo> {
+    create_dir_all(dir)?;
+    pipeline::write_truth(scene, spec, dir)?;
+    Ok(SyntheticInfo {
+        truth_dir: TRUTH_DIR.into(),
+        spec_file: SPEC_FILE.into(),
+    })
+}
+
+/// Captures the synthetic scene `spec` into `dir` through `lights`, with the simulated
+/// camera asking `source` what is lit; the set gets the scene's ground truth.
+#[allow(clippy::too_many_arguments)]
+pub fn capture_synthetic(
+    dir: &Path,
+    rig: &Rig,
+    spec: &SynthSpec,
+    lights: &SharedLights,
+    source: Box<dyn LitSource>,
+    options: &CaptureOptions,
+    interrupt: &Interrupt,
+    progress: &dyn Progress,
+) -> Result<CaptureReport> {
+    let mut camera = SimCamera::new(rig, spec, source)?;
+    let mut options = options.clone();
+    let exists = dir.join(crate::capture::manifest::MANIFEST_FILE).is_file();
+    // A set being resumed has its truth already; one that must not be overwritten is
+    // refused by the sequencer before anything is written.
+    if !exists || options.force {
+        options.synthetic = Some(write_scene_truth(camera.scene(), spec, dir)?);
+    }
+    run_capture(dir, rig, lights, &mut camera, &options, interrupt, progress)
+}
+
+/// One frame of the firmware-in-the-loop demo: which LEDs the firmware had on (from its pin
+/// log) when the camera fired.
+#[derive(Clone, Debug, Serialize)]
+pub struct DemoFrame {
+    pub file: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub light: Option<usize>,
+    pub lit_at_fire: Vec<usize>,
+    pub fired_unix_us: u64,
+}
+
+/// `psscan demo --firmware-sim --json`.
+#[derive(Clone, Debug, Serialize)]
+pub struct FirmwareSimDemoSummary {
+    pub rig: String,
+    pub width: usize,
+    pub height: usize,
+    pub lights: usize,
+    pub normal_error_deg: crate::eval::Stats,
+    pub predicted_normal_error_deg: Mean,
+    pub albedo_rel_error: crate::eval::Stats,
+    pub solved_pixels: usize,
+    pub firmware: FirmwareInfo,
+    pub port: String,
+    pub pin_log: PathBuf,
+    pub frames: Vec<DemoFrame>,
+    /// Shots at which the pin log shows anything but the one intended LED (or, for the dark
+    /// frame, any LED): 0 in a correct run.
+    pub shots_with_wrong_leds: usize,
+    /// The most LEDs the pin log ever shows on together (1 in a correct run).
+    pub max_leds_on_together: usize,
+    pub keepalive_pings: u64,
+    pub timings_s: BTreeMap<String, f64>,
+    pub paths: DemoPaths,
+}
+
+/// The demo through the emulated firmware: start the emulator, open its pty, capture the
+/// synthetic textile into `out/capture` with the simulated camera, solve into `out/maps`,
+/// compare with the ground truth. The demo's folder is scratch space (replaced).
+pub fn run_firmware_sim_demo(
+    out: &Path,
+    spec: &SynthSpec,
+    job: &SolveJob,
+    settle: std::time::Duration,
+    interrupt: &Interrupt,
+    progress: &dyn Progress,
+) -> Result<FirmwareSimDemoSummary> {
+    let total = Instant::now();
+    let rig = Rig::default_rig();
+    let capture_dir = out.join("capture");
+    let maps_dir = out.join("maps");
+    let sim_dir = out.join("firmware-sim");
+    create_dir_all(&sim_dir)?;
+    let pin_log_path = sim_dir.join("pins.log");
+    let controller = EmulatedController::start(&pin_log_path, SerialOptions::default())?;
+    let options = CaptureOptions {
+        settle,
+        force: true,
+        ..CaptureOptions::default()
+    };
+    let start = Instant::now();
+    let capture = capture_synthetic(
+        &capture_dir,
+        &rig,
+        spec,
+        &controller.lights,
+        Box::new(controller.pin_log()),
+        &options,
+        interrupt,
+        progress,
+    )?;
+    let capture_s = start.elapsed().as_secs_f64();
+    let history = controller.pin_log().read()?;
+    let port = controller.emulator.pty().to_string();
+    let firmware = controller.firmware.clone();
+    drop(controller);
+
+    let frames: Vec<DemoFrame> = capture
+        .frames
+        .iter()
+        .map(|f| DemoFrame {
+            file: f.file.clone(),
+            light: f.light,
+            lit_at_fire: f.lit_at_fire.clone().unwrap_or_default(),
+            fired_unix_us: f.fired_unix_us.unwrap_or_default(),
+        })
+        .collect();
+    let shots_with_wrong_leds = frames
+        .iter()
+        .filter(|f| {
+            let intended: Vec<usize> = f.light.into_iter().collect();
+            f.lit_at_fire != intended || history.lit_at_unix_us(f.fired_unix_us) != intended
+        })
+        .count();
+
+    let job = SolveJob {
+        force: true,
+        ..job.clone()
+    };
+    let report = pipeline::solve_capture_set(&capture_dir, &maps_dir, &job, progress)?;
+    let truth = report
+        .truth
+        .clone()
+        .expect("the emulated capture records the scene's ground truth");
+    let mut timings = BTreeMap::new();
+    timings.insert("capture".into(), capture_s);
+    for (k, v) in &report.timings_s {
+        timings.insert(format!("solve_{k}"), *v);
+    }
+    timings.insert("total".into(), total.elapsed().as_secs_f64());
+    let outputs: WrittenMaps = report.outputs.clone();
+    Ok(FirmwareSimDemoSummary {
+        rig: rig.name.clone(),
+        width: spec.width,
+        height: spec.height,
+        lights: rig.leds.len(),
+        normal_error_deg: truth.normal_error_deg,
+        predicted_normal_error_deg: report.predicted_normal_error_deg,
+        albedo_rel_error: truth.albedo_rel_error,
+        solved_pixels: truth.pixels,
+        firmware,
+        port,
+        pin_log: pin_log_path,
+        frames,
+        shots_with_wrong_leds,
+        max_leds_on_together: history.max_lit_together(),
+        keepalive_pings: capture.keepalive_pings,
+        timings_s: timings,
+        paths: DemoPaths {
+            capture: capture_dir,
+            report: maps_dir.join(maps::REPORT_FILE),
+            maps: maps_dir,
+            outputs,
+        },
+    })
+}
