@@ -110,6 +110,7 @@ impl Emulator {
     /// harness gets `--exit-with-parent`: it stops when the thread that started it ends, so a
     /// killed test run leaves no emulator behind (start it from a thread that outlives it).
     pub fn start(files: &EmulatorFiles, pin_log: &Path) -> Result<Emulator> {
+        use std::os::unix::process::CommandExt;
         let mut child = Command::new(&files.harness)
             .arg("--firmware")
             .arg(&files.firmware)
@@ -119,6 +120,9 @@ impl Emulator {
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
+            // Its own process group: Ctrl-C in the terminal reaches psscan, which switches
+            // the LEDs off through the emulator before stopping it, not the emulator first.
+            .process_group(0)
             .spawn()
             .map_err(|e| {
                 Error::device(

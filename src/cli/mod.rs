@@ -3,6 +3,7 @@
 //!
 //! Exit codes: 0 success, 1 failure (the message says what and where), 2 usage error.
 
+mod capture;
 mod progress;
 
 use std::path::{Path, PathBuf};
@@ -41,6 +42,11 @@ enum Command {
     Synth(SynthArgs),
     /// Solve a capture set into maps and a report.
     Solve(SolveArgs),
+    /// Shoot a capture set: a dark frame, then one frame per LED, through the LED controller
+    /// and a camera; resumable.
+    Capture(capture::CaptureArgs),
+    /// Bench work on the LED controller: list ports, identify, test, switch LEDs.
+    Lights(capture::LightsArgs),
 }
 
 #[derive(Args)]
@@ -52,6 +58,10 @@ struct DemoArgs {
     scene: SceneArgs,
     #[command(flatten)]
     solve: SolveFlags,
+    /// Capture through the LED firmware running in its emulator (firmware/build) and the
+    /// simulated camera, over psscan's real serial code, then solve.
+    #[arg(long)]
+    firmware_sim: bool,
 }
 
 #[derive(Args)]
@@ -195,12 +205,18 @@ pub fn run() -> i32 {
         Command::Demo(args) => demo(args, cli.json, &bars),
         Command::Synth(args) => synth(args, cli.json, &bars),
         Command::Solve(args) => solve(args, cli.json, &bars),
+        Command::Capture(args) => capture::capture(args, cli.json, &bars),
+        Command::Lights(args) => capture::lights(args, cli.json),
     };
     match outcome {
         Ok(()) => 0,
         Err(err) => {
             eprintln!("psscan: error: {err:#}");
-            1
+            // 130: stopped by Ctrl-C, as shells report SIGINT.
+            match err.downcast_ref::<psscan::Error>() {
+                Some(psscan::Error::Interrupted(_)) => 130,
+                _ => 1,
+            }
         }
     }
 }
@@ -220,6 +236,9 @@ fn print_json<T: serde::Serialize>(value: &T) {
 }
 
 fn demo(args: &DemoArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
+    if args.firmware_sim {
+        return capture::demo_firmware_sim(&args.out, &args.scene, &args.solve.job(), json, bars);
+    }
     let spec = args.scene.spec();
     let summary = pipeline::run_demo(&args.out, &spec, &args.solve.job(), bars)?;
     if json {
