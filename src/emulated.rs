@@ -37,7 +37,10 @@ impl EmulatedController {
         let files = EmulatorFiles::locate()?;
         let emulator = Emulator::start(&files, pin_log)?;
         let serial = SerialLights::open(emulator.pty(), options)?;
-        let firmware = serial.info().cloned().expect("open identifies the firmware");
+        let firmware = serial
+            .info()
+            .cloned()
+            .expect("open identifies the firmware");
         Ok(EmulatedController {
             emulator,
             lights: SharedLights::new(Box::new(serial)),

@@ -55,7 +55,12 @@ fn check_pin_log_against(report: &CaptureReport, history: &PinHistory) {
         let intended: Vec<usize> = frame.light.into_iter().collect();
         let at_fire = history.lit_at_unix_us(frame.fired_unix_us.unwrap());
         assert_eq!(at_fire, intended, "{}: pin log at the shot", frame.file);
-        assert_eq!(frame.lit_at_fire.as_ref(), Some(&intended), "{}", frame.file);
+        assert_eq!(
+            frame.lit_at_fire.as_ref(),
+            Some(&intended),
+            "{}",
+            frame.file
+        );
     }
     assert!(history.max_lit_together() <= 1);
 }
@@ -206,7 +211,11 @@ fn serial_link_drives_the_real_firmware_and_surfaces_its_refusals() {
     }
     assert_eq!(serial.send_raw(b"PING").unwrap(), "PONG");
     // The typed API refuses what it knows is wrong before sending it.
-    assert!(serial.on(10).unwrap_err().to_string().contains("does not exist"));
+    assert!(serial
+        .on(10)
+        .unwrap_err()
+        .to_string()
+        .contains("does not exist"));
     assert!(serial
         .set_timeout(50)
         .unwrap_err()
@@ -314,7 +323,10 @@ fn the_port_vanishing_mid_session_is_named_and_resume_completes_the_set() {
     .unwrap_err()
     .to_string();
     println!("{err}");
-    assert!(err.contains("vanished") && err.contains("/dev/pts/"), "{err}");
+    assert!(
+        err.contains("vanished") && err.contains("/dev/pts/"),
+        "{err}"
+    );
     assert!(err.contains("frame L04 (LED 4)"), "{err}");
     assert!(err.contains("could not switch the LEDs off"), "{err}");
     assert!(err.contains("--resume"), "{err}");
@@ -363,10 +375,16 @@ fn a_camera_failing_on_frame_k_leaves_leds_off_and_resume_completes_the_set() {
     )
     .unwrap_err()
     .to_string();
-    assert!(err.contains("frame L06 (LED 6)") && err.contains("card full"), "{err}");
+    assert!(
+        err.contains("frame L06 (LED 6)") && err.contains("card full"),
+        "{err}"
+    );
     assert!(err.contains("all LEDs are off"), "{err}");
     let history = pins.read().unwrap();
-    assert!(history.lit_now().is_empty(), "pin log: LEDs off after the error");
+    assert!(
+        history.lit_now().is_empty(),
+        "pin log: LEDs off after the error"
+    );
     assert!(history.events.iter().any(|e| e.led == 6 && e.on));
     assert_eq!(kept_frames(&dir), first_frames(k));
     drop(controller);
@@ -445,7 +463,10 @@ fn garbage_on_the_line_is_retried_once_then_named_and_resume_completes_the_set()
         err.contains("ERR 3 line too long") && err.contains("after one retry"),
         "{err}"
     );
-    assert!(err.contains("frame L04 (LED 4)") && err.contains("all LEDs are off"), "{err}");
+    assert!(
+        err.contains("frame L04 (LED 4)") && err.contains("all LEDs are off"),
+        "{err}"
+    );
     let history = emulator.pin_log().read().unwrap();
     assert!(history.lit_now().is_empty());
     assert!(
@@ -494,7 +515,10 @@ fn a_silent_host_lets_the_firmware_switch_off_and_the_frame_is_not_kept() {
     )
     .unwrap_err()
     .to_string();
-    assert!(err.contains("frame L03 (LED 3)") && err.contains("tripped=1"), "{err}");
+    assert!(
+        err.contains("frame L03 (LED 3)") && err.contains("tripped=1"),
+        "{err}"
+    );
     assert!(err.contains("all LEDs are off"), "{err}");
     // The pin log: LED 3 went off by itself, 300 ms (plus the 100 ms lease) after it went
     // on, long before the host spoke again at 1200 ms.

@@ -86,9 +86,16 @@ fn capture_over_the_emulated_firmware_then_solve() {
         s(&tmp.path().join("maps")),
         "--json",
     ]));
-    let measured = solved["truth"]["normal_error_deg"]["mean"].as_f64().unwrap();
-    let predicted = solved["predicted_normal_error_deg"]["mean"].as_f64().unwrap();
-    assert!((measured / predicted - 1.0).abs() < 0.1, "{measured} vs {predicted}");
+    let measured = solved["truth"]["normal_error_deg"]["mean"]
+        .as_f64()
+        .unwrap();
+    let predicted = solved["predicted_normal_error_deg"]["mean"]
+        .as_f64()
+        .unwrap();
+    assert!(
+        (measured / predicted - 1.0).abs() < 0.1,
+        "{measured} vs {predicted}"
+    );
 
     // A complete set is never overwritten without --force.
     let again = psscan(&capture_args(&set, emu.pty(), &pins, "5"));
@@ -118,7 +125,10 @@ fn ctrl_c_during_a_capture_switches_the_leds_off_and_resume_completes_the_set() 
         if frames >= 4 {
             break;
         }
-        assert!(start.elapsed() < Duration::from_secs(30), "capture did not progress");
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "capture did not progress"
+        );
         std::thread::sleep(Duration::from_millis(20));
     }
     // SAFETY: signalling our own child.
@@ -128,8 +138,14 @@ fn ctrl_c_during_a_capture_switches_the_leds_off_and_resume_completes_the_set() 
     let out = child.wait_with_output().unwrap();
     let err = stderr(&out);
     assert_eq!(out.status.code(), Some(130), "{err}");
-    assert!(err.contains("interrupted") && err.contains("--resume"), "{err}");
-    assert!(emu.pin_log().lit().unwrap().is_empty(), "LEDs off after Ctrl-C");
+    assert!(
+        err.contains("interrupted") && err.contains("--resume"),
+        "{err}"
+    );
+    assert!(
+        emu.pin_log().lit().unwrap().is_empty(),
+        "LEDs off after Ctrl-C"
+    );
     let set_now = CaptureSet::open(&set, None).unwrap();
     let kept = set_now.manifest.frames.len();
     assert!((4..11).contains(&kept), "{kept}");
@@ -171,8 +187,13 @@ fn demo_firmware_sim_lists_the_lit_led_of_every_shot() {
     assert_eq!(summary["shots_with_wrong_leds"], 0);
     assert_eq!(summary["max_leds_on_together"], 1);
     let measured = summary["normal_error_deg"]["mean"].as_f64().unwrap();
-    let predicted = summary["predicted_normal_error_deg"]["mean"].as_f64().unwrap();
-    assert!((measured / predicted - 1.0).abs() < 0.1, "{measured} vs {predicted}");
+    let predicted = summary["predicted_normal_error_deg"]["mean"]
+        .as_f64()
+        .unwrap();
+    assert!(
+        (measured / predicted - 1.0).abs() < 0.1,
+        "{measured} vs {predicted}"
+    );
     assert!(Path::new(summary["pin_log"].as_str().unwrap()).is_file());
     assert!(out.join("maps/normal.png").is_file());
 }
@@ -190,28 +211,49 @@ fn lights_bench_commands_drive_the_emulated_firmware() {
     assert_eq!(id["state"]["on"], Value::Null);
 
     let checks = json(&psscan(&[
-        "lights", "--port", &pty, "test", "--dwell-ms", "10", "--json",
+        "lights",
+        "--port",
+        &pty,
+        "test",
+        "--dwell-ms",
+        "10",
+        "--json",
     ]));
     assert_eq!(checks.as_array().unwrap().len(), 10);
     assert!(checks.as_array().unwrap().iter().all(|c| c["ok"] == true));
     let history = emu.pin_log().read().unwrap();
-    let ons: Vec<usize> = history.events.iter().filter(|e| e.on).map(|e| e.led).collect();
+    let ons: Vec<usize> = history
+        .events
+        .iter()
+        .filter(|e| e.on)
+        .map(|e| e.led)
+        .collect();
     assert_eq!(ons, (0..10).collect::<Vec<_>>());
     assert!(history.lit_now().is_empty());
 
     // `on N` holds the LED with keepalives past the firmware's 3 s timeout... here briefly.
-    json(&psscan(&["lights", "--port", &pty, "on", "6", "--for-s", "0.3", "--json"]));
+    json(&psscan(&[
+        "lights", "--port", &pty, "on", "6", "--for-s", "0.3", "--json",
+    ]));
     let history = emu.pin_log().read().unwrap();
     assert!(history.events.iter().any(|e| e.led == 6 && e.on));
     assert!(history.lit_now().is_empty());
 
     let bad = psscan(&["lights", "--port", &pty, "on", "12"]);
     assert_eq!(bad.status.code(), Some(1));
-    assert!(stderr(&bad).contains("LED 12 does not exist"), "{}", stderr(&bad));
+    assert!(
+        stderr(&bad).contains("LED 12 does not exist"),
+        "{}",
+        stderr(&bad)
+    );
 
     let gone = psscan(&["lights", "--port", "/dev/pts/999999", "identify"]);
     assert_eq!(gone.status.code(), Some(1));
-    assert!(stderr(&gone).contains("/dev/pts/999999"), "{}", stderr(&gone));
+    assert!(
+        stderr(&gone).contains("/dev/pts/999999"),
+        "{}",
+        stderr(&gone)
+    );
 }
 
 #[test]
@@ -241,11 +283,19 @@ fn a_failing_camera_command_is_named_and_leaves_the_leds_off() {
     ]);
     let err = stderr(&out);
     assert_eq!(out.status.code(), Some(1), "{err}");
-    assert!(err.contains("frame L01 (LED 1)") && err.contains("card full"), "{err}");
+    assert!(
+        err.contains("frame L01 (LED 1)") && err.contains("card full"),
+        "{err}"
+    );
     assert!(err.contains("all LEDs are off"), "{err}");
     assert!(emu.pin_log().lit().unwrap().is_empty());
     let kept = CaptureSet::open(&set, None).unwrap();
-    let files: Vec<&str> = kept.manifest.frames.iter().map(|f| f.file.as_str()).collect();
+    let files: Vec<&str> = kept
+        .manifest
+        .frames
+        .iter()
+        .map(|f| f.file.as_str())
+        .collect();
     assert_eq!(files, ["dark.nef", "L00.nef"]);
     assert_eq!(kept.manifest.image.encoding, "raw");
 }

@@ -224,7 +224,12 @@ pub fn run_capture(
     let pings = keepalive.pings();
     drop(keepalive);
     if let Err(e) = lights.lock().off() {
-        return Err(stopped(&writer, "switching the LEDs off at the end", e, lights));
+        return Err(stopped(
+            &writer,
+            "switching the LEDs off at the end",
+            e,
+            lights,
+        ));
     }
     let shot = frames
         .iter()
@@ -325,7 +330,10 @@ fn existing(writer: &CaptureSetWriter, planned: Planned) -> Option<&super::Frame
 
 /// The camera's scratch file for a frame (inside the set, so the move is a rename).
 fn scratch_path(dir: &Path, planned: Planned) -> PathBuf {
-    dir.join(format!(".{}.shot", planned.file("x").trim_end_matches(".x")))
+    dir.join(format!(
+        ".{}.shot",
+        planned.file("x").trim_end_matches(".x")
+    ))
 }
 
 /// Leftovers of a session that stopped mid-shot.
@@ -606,8 +614,14 @@ mod tests {
         )
         .unwrap_err()
         .to_string();
-        assert!(err.contains("LED 3") && err.contains("shutter jammed"), "{err}");
-        assert!(err.contains("all LEDs are off") && err.contains("--resume"), "{err}");
+        assert!(
+            err.contains("LED 3") && err.contains("shutter jammed"),
+            "{err}"
+        );
+        assert!(
+            err.contains("all LEDs are off") && err.contains("--resume"),
+            "{err}"
+        );
         assert!(probe.lit().is_empty());
         let set = CaptureSet::open(dir.path(), None).unwrap();
         assert_eq!(set.manifest.frames.len(), 4);

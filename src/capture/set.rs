@@ -414,6 +414,23 @@ mod tests {
     }
 
     #[test]
+    fn resume_keeps_intact_frames_and_drops_damaged_or_missing_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        write_set(dir.path(), 3);
+        std::fs::write(dir.path().join("L00.png"), frame_bytes(4321)).unwrap();
+        std::fs::remove_file(dir.path().join("L02.png")).unwrap();
+        let (writer, dropped) = CaptureSetWriter::resume(dir.path()).unwrap();
+        let files: Vec<&str> = dropped.iter().map(|d| d.file.as_str()).collect();
+        assert_eq!(files, ["L00.png", "L02.png"]);
+        assert!(dropped[0].reason.contains("SHA-256"), "{:?}", dropped[0]);
+        assert_eq!(writer.manifest().frames.len(), 1);
+        // The manifest on disk no longer claims the dropped frames.
+        let set = CaptureSet::open(dir.path(), None).unwrap();
+        assert_eq!(set.manifest.frames.len(), 1);
+        assert_eq!(set.manifest.frames[0].file, "L01.png");
+    }
+
+    #[test]
     fn a_folder_without_manifest_is_not_a_set() {
         let dir = tempfile::tempdir().unwrap();
         let err = CaptureSet::open(dir.path(), None)

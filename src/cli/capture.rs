@@ -411,7 +411,10 @@ pub fn lights(args: &LightsArgs, json: bool) -> anyhow::Result<()> {
                 print_json(&checks);
             }
             if interrupt.is_set() {
-                return Err(psscan::Error::Interrupted("LED test stopped; all LEDs are off".into()).into());
+                return Err(psscan::Error::Interrupted(
+                    "LED test stopped; all LEDs are off".into(),
+                )
+                .into());
             }
             if checks.iter().any(|c| !c.ok) {
                 anyhow::bail!("some LEDs did not report the expected state");

@@ -181,7 +181,9 @@ mod tests {
 
     #[test]
     fn templates_are_checked() {
-        assert!(CommandCamera::new("gphoto2 --filename {out}", None, Duration::from_secs(1)).is_ok());
+        assert!(
+            CommandCamera::new("gphoto2 --filename {out}", None, Duration::from_secs(1)).is_ok()
+        );
         let err = CommandCamera::new("gphoto2 --capture", None, Duration::from_secs(1))
             .err()
             .unwrap()
@@ -196,9 +198,12 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let dest = dir.path().join("shot");
         let stop = Interrupt::new();
-        let mut ok =
-            CommandCamera::new("sh -c 'printf abc > \"$1\"' sh {out}", Some("NEF"), Duration::from_secs(10))
-                .unwrap();
+        let mut ok = CommandCamera::new(
+            "sh -c 'printf abc > \"$1\"' sh {out}",
+            Some("NEF"),
+            Duration::from_secs(10),
+        )
+        .unwrap();
         let shot = ok.capture(&dest, &stop).unwrap();
         assert_eq!(std::fs::read(&dest).unwrap(), b"abc");
         assert_eq!(shot.extension, "nef");
@@ -210,18 +215,24 @@ mod tests {
         )
         .unwrap();
         let err = failing.capture(&dest, &stop).unwrap_err().to_string();
-        assert!(err.contains("no camera found") && err.contains("3"), "{err}");
+        assert!(
+            err.contains("no camera found") && err.contains("3"),
+            "{err}"
+        );
 
         let mut silent = CommandCamera::new("true {out}", None, Duration::from_secs(10)).unwrap();
         let err = silent.capture(&dest, &stop).unwrap_err().to_string();
         assert!(err.contains("wrote nothing"), "{err}");
 
-        let mut slow = CommandCamera::new("sh -c 'sleep 5' sh {out}", None, Duration::from_millis(100)).unwrap();
+        let mut slow =
+            CommandCamera::new("sh -c 'sleep 5' sh {out}", None, Duration::from_millis(100))
+                .unwrap();
         let err = slow.capture(&dest, &stop).unwrap_err().to_string();
         assert!(err.contains("timed out"), "{err}");
 
         stop.set();
-        let mut slow = CommandCamera::new("sh -c 'sleep 5' sh {out}", None, Duration::from_secs(10)).unwrap();
+        let mut slow =
+            CommandCamera::new("sh -c 'sleep 5' sh {out}", None, Duration::from_secs(10)).unwrap();
         let err = slow.capture(&dest, &stop).unwrap_err();
         assert!(matches!(err, Error::Interrupted(_)), "{err}");
     }

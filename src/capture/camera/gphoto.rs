@@ -108,7 +108,9 @@ impl Camera for Gphoto2Camera {
     fn settings(&mut self) -> Result<CameraSettings> {
         Ok(CameraSettings {
             model: self.model.clone(),
-            iso: self.read_setting(&["iso", "isospeed"]).and_then(|t| parse_iso(&t)),
+            iso: self
+                .read_setting(&["iso", "isospeed"])
+                .and_then(|t| parse_iso(&t)),
             shutter_s: self
                 .read_setting(&["shutterspeed", "shutterspeed2", "exposuretime"])
                 .and_then(|t| parse_shutter(&t)),
@@ -128,7 +130,10 @@ impl Camera for Gphoto2Camera {
 
     fn capture(&mut self, dest: &Path, interrupt: &Interrupt) -> Result<Shot> {
         if interrupt.is_set() {
-            return Err(Error::Interrupted(format!("{}: before firing", self.name())));
+            return Err(Error::Interrupted(format!(
+                "{}: before firing",
+                self.name()
+            )));
         }
         let fired_unix_us = unix_now_us();
         let file = self
@@ -173,7 +178,10 @@ mod tests {
     #[test]
     fn without_a_camera_the_error_says_so() {
         match Gphoto2Camera::open(Duration::from_secs(5)) {
-            Ok(camera) => eprintln!("a camera is connected ({}); nothing to check", camera.name()),
+            Ok(camera) => eprintln!(
+                "a camera is connected ({}); nothing to check",
+                camera.name()
+            ),
             Err(e) => {
                 let text = e.to_string();
                 assert!(text.starts_with(DEVICE), "{text}");

@@ -149,7 +149,10 @@ impl<'a> SimCamera<'a> {
                 (&mut planes.g, &light.g),
                 (&mut planes.b, &light.b),
             ] {
-                sum.data.iter_mut().zip(&add.data).for_each(|(s, a)| *s += a);
+                sum.data
+                    .iter_mut()
+                    .zip(&add.data)
+                    .for_each(|(s, a)| *s += a);
             }
         }
         Ok(expose(
@@ -201,7 +204,10 @@ impl Camera for SimCamera<'_> {
 
     fn capture(&mut self, dest: &Path, interrupt: &Interrupt) -> Result<Shot> {
         if !interrupt.sleep(self.delay_before_fire) {
-            return Err(Error::Interrupted(format!("{}: before firing", self.name())));
+            return Err(Error::Interrupted(format!(
+                "{}: before firing",
+                self.name()
+            )));
         }
         let lit = self.source.lit()?;
         let fired_unix_us = unix_now_us();
@@ -263,7 +269,11 @@ mod tests {
 
         mock.on(5).unwrap();
         camera.capture(&dest, &stop).unwrap();
-        assert_ne!(crate::raw::read_dn_image(&dest).unwrap(), expected, "another LED, another image");
+        assert_ne!(
+            crate::raw::read_dn_image(&dest).unwrap(),
+            expected,
+            "another LED, another image"
+        );
 
         // Two LEDs at once (impossible with the firmware): their sum.
         let both = camera.render(&[2, 5]).unwrap();

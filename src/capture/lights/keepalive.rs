@@ -180,7 +180,8 @@ mod tests {
         mock.set_timeout(100).unwrap();
         mock.on(4).unwrap();
         let lights = SharedLights::new(Box::new(mock));
-        let keepalive = Keepalive::start(lights.clone(), Duration::from_millis(30), Interrupt::new());
+        let keepalive =
+            Keepalive::start(lights.clone(), Duration::from_millis(30), Interrupt::new());
         {
             let _lease = keepalive.lease(Duration::from_secs(10));
             std::thread::sleep(Duration::from_millis(300));

@@ -55,7 +55,9 @@ impl SharedLights {
     /// Exclusive use for one or a few requests. A panic while holding the lock does not make
     /// the controller unusable: switching the LEDs off must still work afterwards.
     pub fn lock(&self) -> MutexGuard<'_, Box<dyn LightController>> {
-        self.0.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+        self.0
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 
     /// Switches the LEDs off, returning a sentence for the operator on what was left behind.

@@ -41,8 +41,18 @@ const KNOWN: &[(u16, Option<u16>, &str, u8)] = &[
     (0x2341, None, "Arduino board", 1),
     (0x2a03, Some(0x0043), "Arduino Uno R3 (arduino.org)", 1),
     (0x2a03, None, "Arduino board (arduino.org)", 1),
-    (0x1a86, Some(0x7523), "CH340 USB-serial (Nano/Uno clones)", 2),
-    (0x0403, Some(0x6001), "FTDI FT232R USB-serial (Nano, Duemilanove)", 2),
+    (
+        0x1a86,
+        Some(0x7523),
+        "CH340 USB-serial (Nano/Uno clones)",
+        2,
+    ),
+    (
+        0x0403,
+        Some(0x6001),
+        "FTDI FT232R USB-serial (Nano, Duemilanove)",
+        2,
+    ),
     (0x10c4, Some(0xea60), "CP210x USB-serial (clones)", 2),
 ];
 
@@ -196,13 +206,21 @@ mod tests {
             choose_port(&[modem.clone(), clone.clone()]).unwrap(),
             "/dev/ttyUSB0"
         );
-        let err = choose_port(&[modem.clone()]).unwrap_err().to_string();
-        assert!(err.contains("no Arduino") && err.contains("/dev/ttyACM1"), "{err}");
+        let err = choose_port(std::slice::from_ref(&modem))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("no Arduino") && err.contains("/dev/ttyACM1"),
+            "{err}"
+        );
         let mut uno2 = uno.clone();
         uno2.path = "/dev/ttyACM2".into();
         let err = choose_port(&[uno, uno2]).unwrap_err().to_string();
         assert!(err.contains("several") && err.contains("--port"), "{err}");
-        assert!(choose_port(&[]).unwrap_err().to_string().contains("no serial ports"));
+        assert!(choose_port(&[])
+            .unwrap_err()
+            .to_string()
+            .contains("no serial ports"));
     }
 
     #[test]

@@ -220,7 +220,11 @@ pub fn parse_state(text: &str) -> Result<LightState, String> {
 /// A received line for an error message: quoted, with control and non-ASCII bytes escaped,
 /// and cut short when long.
 pub fn quote(text: &str) -> String {
-    let mut out: String = text.chars().take(60).flat_map(char::escape_default).collect();
+    let mut out: String = text
+        .chars()
+        .take(60)
+        .flat_map(char::escape_default)
+        .collect();
     if text.chars().count() > 60 {
         out.push_str("...");
     }
@@ -320,7 +324,10 @@ mod tests {
     #[test]
     fn other_firmware_and_protocols_are_refused_with_advice() {
         let other = parse_identity("blinky fw=2 proto=1 leds=10").unwrap();
-        assert!(other.check_compatible().unwrap_err().contains("not psscan-led"));
+        assert!(other
+            .check_compatible()
+            .unwrap_err()
+            .contains("not psscan-led"));
         let newer = parse_identity("psscan-led fw=2.0.0 proto=2 leds=10 extra=1").unwrap();
         let err = newer.check_compatible().unwrap_err();
         assert!(err.contains("protocol 2") && err.contains("flash"), "{err}");

@@ -127,7 +127,8 @@ impl SerialLights {
         let deadline = Instant::now() + self.options.command_timeout;
         let mut line = bytes.to_vec();
         line.push(b'\n');
-        self.write(&line).map_err(|e| self.error(e, &quote_bytes(bytes)))?;
+        self.write(&line)
+            .map_err(|e| self.error(e, &quote_bytes(bytes)))?;
         loop {
             let received = self
                 .read_line(deadline)
@@ -192,7 +193,11 @@ impl SerialLights {
     fn exchange(&mut self, command: Command) -> std::result::Result<Answer, LinkError> {
         let line = command.line();
         let mut bytes = Vec::with_capacity(line.len() + 8);
-        if let Some(noise) = self.noise.as_mut().filter(|n| n.command == line && n.times > 0) {
+        if let Some(noise) = self
+            .noise
+            .as_mut()
+            .filter(|n| n.command == line && n.times > 0)
+        {
             noise.times -= 1;
             bytes.extend_from_slice(&noise.garbage);
         }
@@ -203,7 +208,9 @@ impl SerialLights {
         loop {
             let received = self.read_line(deadline)?;
             match parse_reply(&received).map_err(LinkError::Malformed)? {
-                Reply::Ok(rest) => return command.check_answer(&rest).map_err(LinkError::Malformed),
+                Reply::Ok(rest) => {
+                    return command.check_answer(&rest).map_err(LinkError::Malformed)
+                }
                 Reply::Err { code, reason } => return Err(LinkError::Refused { code, reason }),
                 // A reset during the session: the command may have been lost with it; keep
                 // reading until the deadline, the retry sends it again.
@@ -291,13 +298,13 @@ impl SerialLights {
             }
             match self.port.read(&mut buf) {
                 Ok(0) => {
-                    return Err(self.classify(std::io::Error::new(
-                        ErrorKind::UnexpectedEof,
-                        "end of file",
-                    )))
+                    return Err(
+                        self.classify(std::io::Error::new(ErrorKind::UnexpectedEof, "end of file"))
+                    )
                 }
                 Ok(n) => self.rx.extend_from_slice(&buf[..n]),
-                Err(e) if e.kind() == ErrorKind::TimedOut || e.kind() == ErrorKind::Interrupted => {}
+                Err(e) if e.kind() == ErrorKind::TimedOut || e.kind() == ErrorKind::Interrupted => {
+                }
                 Err(e) => return Err(self.classify(e)),
             }
         }
@@ -337,7 +344,9 @@ fn open_error(path: &str, e: serialport::Error) -> Error {
         _ if e.description.contains("lock") => {
             " (the port is in use by another program, perhaps another psscan)"
         }
-        serialport::ErrorKind::NoDevice => " (no such device: is the board plugged in? `psscan lights ports` lists ports)",
+        serialport::ErrorKind::NoDevice => {
+            " (no such device: is the board plugged in? `psscan lights ports` lists ports)"
+        }
         serialport::ErrorKind::Io(ErrorKind::NotFound) => {
             " (no such port: `psscan lights ports` lists ports)"
         }
@@ -424,5 +433,107 @@ impl Drop for SerialLights {
         if !self.vanished {
             let _ = self.exchange(Command::Off);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::{BufRead, BufReader};
+    use std::os::fd::FromRawFd;
+
+    /// A misbehaving device on a real pseudo-terminal: `answer` maps each received line to
+    /// the bytes sent back.
+    fn fake_device(answer: impl Fn(&str) -> Vec<u8> + Send + 'static) -> String {
+        // SAFETY: plain libc pty calls; the master fd is owned by the File below.
+        let (master, name) = unsafe {
+            let fd = libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY);
+            assert!(fd >= 0);
+            assert_eq!(libc::grantpt(fd), 0);
+            assert_eq!(libc::unlockpt(fd), 0);
+            let mut buf = [0 as libc::c_char; 64];
+            assert_eq!(libc::ptsname_r(fd, buf.as_mut_ptr(), buf.len()), 0);
+            let name = std::ffi::CStr::from_ptr(buf.as_ptr())
+                .to_string_lossy()
+                .into_owned();
+            (std::fs::File::from_raw_fd(fd), name)
+        };
+        std::thread::spawn(move || {
+            let mut writer = master.try_clone().unwrap();
+            for line in BufReader::new(master).split(b'\n') {
+                let Ok(line) = line else { return };
+                let text = String::from_utf8_lossy(&line).into_owned();
+                if writer.write_all(&answer(&text)).is_err() {
+                    return;
+                }
+            }
+        });
+        name
+    }
+
+    const ID: &[u8] = b"OK ID psscan-led fw=1.0.0 proto=1 leds=10\n";
+
+    fn open(path: &str) -> Result<SerialLights> {
+        SerialLights::open(
+            path,
+            SerialOptions {
+                command_timeout: Duration::from_millis(200),
+                ..SerialOptions::default()
+            },
+        )
+    }
+
+    #[test]
+    fn malformed_mismatched_and_missing_answers_are_retried_once_then_named() {
+        for (reply, needle) in [
+            (b"HELLO\n".to_vec(), "malformed answer \"HELLO\""),
+            (b"OK ON 4\n".to_vec(), "does not belong"),
+            (vec![b'Z'; 200], "without a line end"),
+            (b"OK \xff\xfe\n".to_vec(), "not text"),
+            (Vec::new(), "no answer"),
+        ] {
+            let path = fake_device(move |line| match line {
+                "ID" => ID.to_vec(),
+                "" => b"ERR 1 unknown command\n".to_vec(),
+                _ => reply.clone(),
+            });
+            let mut lights = open(&path).unwrap();
+            let err = lights.on(3).unwrap_err().to_string();
+            assert!(err.contains(needle), "{needle}: {err}");
+            assert!(
+                err.contains("after one retry") && err.contains(&path),
+                "{err}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_retry_recovers_a_lost_answer_and_other_firmware_is_refused() {
+        let count = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let seen = count.clone();
+        let path = fake_device(move |line| match line {
+            "ID" => ID.to_vec(),
+            // The first ON is lost; the retry is answered.
+            "ON 3" if seen.fetch_add(1, std::sync::atomic::Ordering::SeqCst) == 0 => Vec::new(),
+            "ON 3" => b"OK ON 3\n".to_vec(),
+            "" => b"ERR 1 unknown command\n".to_vec(),
+            _ => b"ERR 1 unknown command\n".to_vec(),
+        });
+        let mut lights = open(&path).unwrap();
+        lights.on(3).unwrap();
+        assert_eq!(count.load(std::sync::atomic::Ordering::SeqCst), 2);
+
+        let path = fake_device(|line| match line {
+            "ID" => b"OK ID psscan-led fw=9.0.0 proto=9 leds=10\n".to_vec(),
+            _ => b"OK OFF\n".to_vec(),
+        });
+        let err = open(&path).err().unwrap().to_string();
+        assert!(err.contains("protocol 9") && err.contains("flash"), "{err}");
+
+        let err = open("/dev/pts/999999").err().unwrap().to_string();
+        assert!(
+            err.contains("cannot open") && err.contains("/dev/pts/999999"),
+            "{err}"
+        );
     }
 }
