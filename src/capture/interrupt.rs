@@ -24,17 +24,20 @@ impl Interrupt {
     }
 
     /// Sleeps for `duration` in short steps; returns false as soon as the flag is set.
+    /// `Duration::MAX` sleeps until the flag is set.
     pub fn sleep(&self, duration: Duration) -> bool {
-        let end = Instant::now() + duration;
+        let end = Instant::now().checked_add(duration);
         loop {
             if self.is_set() {
                 return false;
             }
             let now = Instant::now();
-            if now >= end {
-                return true;
-            }
-            std::thread::sleep((end - now).min(Duration::from_millis(10)));
+            let left = match end {
+                Some(end) if now >= end => return true,
+                Some(end) => end - now,
+                None => Duration::MAX,
+            };
+            std::thread::sleep(left.min(Duration::from_millis(10)));
         }
     }
 }

@@ -116,9 +116,10 @@ pub struct CaptureArgs {
     /// Camera: `gphoto2` (tethered, needs the gphoto2 build feature), `sim` (renders the
     /// synthetic textile under whatever LEDs are on), or `cmd:TEMPLATE` (runs TEMPLATE with
     /// {out} replaced by the file to write, e.g.
-    /// `cmd:gphoto2 --capture-image-and-download --filename {out}`).
-    #[arg(long, default_value = "gphoto2")]
-    camera: String,
+    /// `cmd:gphoto2 --capture-image-and-download --filename {out}`). Default: gphoto2, or
+    /// sim with --firmware-sim.
+    #[arg(long)]
+    camera: Option<String>,
     /// Complete an interrupted set: shoot only missing or damaged frames.
     #[arg(long)]
     resume: bool,
@@ -165,7 +166,15 @@ pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()
         synthetic: None,
     };
     let shot_timeout = Duration::from_secs_f64(args.shot_timeout_s.max(0.1));
-    let report = if args.camera == "sim" {
+    let camera = args.camera.clone().unwrap_or_else(|| {
+        if args.port.firmware_sim {
+            "sim"
+        } else {
+            "gphoto2"
+        }
+        .to_string()
+    });
+    let report = if camera == "sim" {
         let source: Box<dyn LitSource> = match (&controller.emulated, &args.pin_log) {
             (Some(emulated), _) => Box::new(emulated.pin_log()),
             (None, Some(path)) => Box::new(PinLog::new(path)),
@@ -182,7 +191,7 @@ pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()
             bars,
         )?
     } else {
-        let mut camera = open_camera(&args.camera, args.frame_ext.as_deref(), shot_timeout)?;
+        let mut camera = open_camera(&camera, args.frame_ext.as_deref(), shot_timeout)?;
         run_capture(
             &args.out,
             &rig,

@@ -75,11 +75,17 @@ impl Keepalive {
         }
     }
 
-    /// Keeps the controller alive for at most `budget` or until the lease is dropped.
+    /// Keeps the controller alive for at most `budget` or until the lease is dropped
+    /// (`Duration::MAX`: until dropped, for an operator holding an LED on the bench).
     pub fn lease(&self, budget: Duration) -> Lease<'_> {
         let mut control = self.inner.lock_control();
         let now = Instant::now();
-        control.lease_until = Some(now + budget);
+        // A budget past what an Instant can hold means "no limit": a century will do.
+        let forever = Duration::from_secs(100 * 365 * 24 * 3600);
+        control.lease_until = Some(
+            now.checked_add(budget)
+                .unwrap_or_else(|| now + forever.min(budget)),
+        );
         control.next_ping = now + self.inner.interval;
         self.inner.wake.notify_all();
         Lease { keepalive: self }
