@@ -4,7 +4,7 @@
 
 CARGO ?= cargo
 
-.PHONY: demo test deps test-rust lint
+.PHONY: demo test deps test-rust test-firmware lint
 
 demo:
 	$(CARGO) run --release -- demo
@@ -13,7 +13,13 @@ deps:
 	./.ci/install-deps
 
 test: deps
+	$(MAKE) test-firmware
 	$(MAKE) test-rust
+
+# The LED firmware: AVR build, native parser tests, a bounded libFuzzer run, and the image
+# running in simavr behind a pseudo-terminal.
+test-firmware:
+	$(MAKE) -C firmware check FUZZ_SECONDS=20
 
 test-rust:
 	$(CARGO) test --release
