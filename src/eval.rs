@@ -116,7 +116,7 @@ pub fn compare_normals_over_mask(
             truth[1].data[i] as f64,
             truth[2].data[i] as f64,
         );
-        if !mask.data[i] || !(t.norm() > 0.0) {
+        if !mask.data[i] || t.norm().is_nan() || t.norm() <= 0.0 {
             continue;
         }
         let angle = angle_deg(&result.normal_at(i), &t);

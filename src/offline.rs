@@ -36,9 +36,17 @@ pub enum SetKind {
 
 /// Tells what `dir` holds, or why it is not a set.
 pub fn set_kind(dir: &Path) -> Result<SetKind> {
-    let meta = std::fs::metadata(dir).map_err(|e| Error::io(dir, e))?;
+    let meta = match std::fs::metadata(dir) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(Error::capture_set(dir, "no such folder: not a capture set"))
+        }
+        other => other.map_err(|e| Error::io(dir, e))?,
+    };
     if !meta.is_dir() {
-        return Err(Error::capture_set(dir, "is not a folder"));
+        return Err(Error::capture_set(
+            dir,
+            "is a file, not a capture set folder",
+        ));
     }
     if dir.join(MANIFEST_FILE).is_file() {
         Ok(SetKind::Capture)
@@ -48,8 +56,8 @@ pub fn set_kind(dir: &Path) -> Result<SetKind> {
         Err(Error::capture_set(
             dir,
             format!(
-                "neither a psscan capture set (no {MANIFEST_FILE}) nor a DiLiGenT-layout set \
-                 (no {} and {})",
+                "not a capture set: no {MANIFEST_FILE} (psscan) and no {} with {} (DiLiGenT \
+                 layout)",
                 diligent::FILENAMES,
                 diligent::LIGHT_DIRECTIONS
             ),

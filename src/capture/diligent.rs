@@ -107,7 +107,7 @@ impl DiligentSet {
             }
         }
         for (k, i) in intensities.iter().enumerate() {
-            if i.iter().any(|v| !(*v > 0.0)) {
+            if i.iter().any(|v| v.is_nan() || *v <= 0.0) {
                 return Err(Error::config(
                     dir.join(LIGHT_INTENSITIES),
                     format!("line {}", k + 1),

@@ -347,9 +347,14 @@ fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     }
     if summary.failed > 0 {
         anyhow::bail!(
-            "{} of {} sets failed (named above); the others were solved",
+            "{} of {} sets failed (named above){}",
             summary.failed,
-            summary.sets.len()
+            summary.sets.len(),
+            if summary.solved > 0 {
+                "; the others were solved"
+            } else {
+                ""
+            }
         );
     }
     Ok(())

@@ -3,7 +3,8 @@
 //!
 //! Corrupt input never panics: rawler's decoders run behind `catch_unwind` (ours wraps the
 //! whole call, including the parts rawler does not guard), every error names the file, and
-//! headers that announce an implausibly large image are refused before anything is allocated.
+//! containers whose headers claim more than the file holds, loop, or announce an implausibly
+//! large image are refused before rawler allocates for them (`guard`).
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::Path;
@@ -58,9 +59,15 @@ pub struct DecodedRaw {
     pub meta: RawMeta,
 }
 
-/// Installs a panic hook that stays silent for panics raised inside rawler (which psscan
-/// catches and reports as a clean error naming the file) and behaves as before for every
-/// other panic. Call once, early (the CLI does).
+thread_local! {
+    /// Set while this thread runs rawler on a file.
+    static DECODING: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Installs a panic hook that stays silent for panics raised while rawler decodes a file (in
+/// rawler's code, or in the standard library on the decoding thread), which psscan catches
+/// and reports as a clean error naming the file, and behaves as before for every other panic.
+/// Call once, early (the CLI does).
 pub fn quiet_decoder_panics() {
     static ONCE: std::sync::Once = std::sync::Once::new();
     ONCE.call_once(|| {
@@ -69,7 +76,7 @@ pub fn quiet_decoder_panics() {
             let in_rawler = info
                 .location()
                 .is_some_and(|l| l.file().contains("/rawler-") || l.file().contains("\\rawler-"));
-            if !in_rawler {
+            if !(in_rawler || DECODING.with(|d| d.get())) {
                 previous(info);
             }
         }));
@@ -87,8 +94,12 @@ pub fn decode_raw(bytes: Vec<u8>, path: &Path) -> Result<DecodedRaw> {
     if bytes.is_empty() {
         return Err(Error::image(path, "is empty (0 bytes): not a RAW file"));
     }
+    super::guard::check_structure(&bytes)
+        .map_err(|m| Error::image(path, format!("is corrupt: {m}")))?;
     let source = RawSource::new_from_shared_vec(Arc::new(bytes)).with_path(path);
+    DECODING.with(|d| d.set(true));
     let decoded = catch_unwind(AssertUnwindSafe(|| decode_source(&source)));
+    DECODING.with(|d| d.set(false));
     match decoded {
         Ok(Ok((image, meta))) => to_mosaic(image, meta).map_err(|m| Error::image(path, m)),
         Ok(Err(message)) => Err(Error::image(path, message)),
@@ -354,7 +365,7 @@ mod tests {
             (
                 "garbage.nef",
                 (0..4096u32)
-                    .map(|i| (i * 2654435761u32 >> 24) as u8)
+                    .map(|i| (i.wrapping_mul(2654435761u32) >> 24) as u8)
                     .collect(),
             ),
         ];

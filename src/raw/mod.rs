@@ -11,6 +11,7 @@
 mod decode;
 mod develop;
 mod dng;
+mod guard;
 mod linear;
 mod mosaic;
 

@@ -623,7 +623,10 @@ mod tests {
     /// A stack of frames of a scene of smooth colour whose shading changes from pixel to pixel
     /// and from frame to frame (what a textile under ten LEDs is), under illuminants of
     /// different colours.
-    fn shaded_stack(w: usize, h: usize) -> (Vec<LinearMosaic>, Vec<[f64; 3]>, Vec<Vec<[f32; 3]>>) {
+    /// Frames, their illuminant colours, and each frame's true RGB per pixel.
+    type Stack = (Vec<LinearMosaic>, Vec<[f64; 3]>, Vec<Vec<[f32; 3]>>);
+
+    fn shaded_stack(w: usize, h: usize) -> Stack {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(5);
         let pattern = Mosaic::parse_pattern("GBRG").unwrap();
