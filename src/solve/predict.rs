@@ -23,8 +23,8 @@ pub struct NoiseModel {
     pub floor: f64,
     /// Variance of each colour channel (R, G, B) relative to one raw sample at the same signal:
     /// 1 where every pixel measures every channel (psscan's dn16 frames); less where a channel
-    /// is a mean of several CFA samples (2x2 binning averages two greens; a demosaic
-    /// interpolates), see `raw::Resolution::channel_variance_scale`.
+    /// is a mean of several CFA samples (2x2 binning averages two greens), see
+    /// `raw::Resolution::channel_variance_scale`.
     #[serde(default = "unit_channel_scale")]
     pub channel_scale: [f64; 3],
     /// Set for RAW frames developed at full resolution: each pixel's R, G and B are its own CFA
@@ -208,6 +208,35 @@ mod tests {
             (measured / predicted - 1.0).abs() < 0.01,
             "measured {measured}, predicted {predicted}"
         );
+    }
+
+    #[test]
+    fn luminance_variance_of_independent_and_of_shared_channels() {
+        let rig = crate::rig::Rig::default_rig();
+        let noise = NoiseModel::from_sensor(&rig.sensor).with_channel_scale([1.0, 0.5, 1.0]);
+        let w = [0.2, 0.7, 0.1];
+        let inv = [2.0, 1.0, 1.5];
+        let raw = [0.1, 0.4, 0.2];
+        let lum: f64 = (0..3).map(|c| w[c] * inv[c] * raw[c]).sum();
+        let independent: f64 = (0..3)
+            .map(|c| (w[c] * inv[c]).powi(2) * noise.channel_scale[c] * noise.variance(raw[c]))
+            .sum();
+        assert_eq!(
+            noise.luminance_variance(&raw, &inv, &w, lum, (3, 5)),
+            independent
+        );
+        // Sharing pixel (3, 5)'s CFA sample: in GBRG that is row 1, column 1, a G sample.
+        let shared = NoiseModel {
+            shared_cfa_sample: Some([[1, 2], [0, 1]]),
+            ..noise
+        };
+        let v = raw[1];
+        let expected = lum * lum * noise.variance(v) / (v * v);
+        assert!((shared.luminance_variance(&raw, &inv, &w, lum, (3, 5)) - expected).abs() < 1e-18);
+        // Pixel (2, 5) holds the R sample.
+        let v = raw[0];
+        let expected = lum * lum * noise.variance(v) / (v * v);
+        assert!((shared.luminance_variance(&raw, &inv, &w, lum, (2, 5)) - expected).abs() < 1e-18);
     }
 
     #[test]
