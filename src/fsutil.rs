@@ -55,6 +55,119 @@ pub fn create_dir_all(path: &Path) -> Result<()> {
     fs::create_dir_all(path).map_err(|e| Error::io(path, e))
 }
 
+/// An output folder built under a temporary name beside its final one and renamed into place
+/// when complete, so the final name only ever holds a whole output. An existing output is
+/// replaced only with `force`, and only when it holds `marker` (proof that psscan wrote it) or
+/// is empty: a folder of someone else's files is never replaced.
+pub struct StagedDir {
+    target: PathBuf,
+    temp: PathBuf,
+    committed: bool,
+}
+
+impl StagedDir {
+    pub fn create(target: &Path, force: bool, marker: &str) -> Result<StagedDir> {
+        check_replaceable(target, force, marker)?;
+        if let Some(parent) = target.parent().filter(|p| !p.as_os_str().is_empty()) {
+            create_dir_all(parent)?;
+        }
+        let temp = temp_sibling_with(target, "partial");
+        fs::create_dir(&temp).map_err(|e| Error::io(&temp, e))?;
+        Ok(StagedDir {
+            target: target.to_path_buf(),
+            temp,
+            committed: false,
+        })
+    }
+
+    /// Where to write the output while it is being built.
+    pub fn path(&self) -> &Path {
+        &self.temp
+    }
+
+    /// The name the output will have.
+    pub fn target(&self) -> &Path {
+        &self.target
+    }
+
+    /// Renames the finished output into place (replacing an old one, which was checked when
+    /// the stage was created and is checked again now).
+    pub fn commit(mut self, force: bool, marker: &str) -> Result<()> {
+        check_replaceable(&self.target, force, marker)?;
+        let old = if self.target.exists() {
+            let old = temp_sibling_with(&self.target, "old");
+            fs::rename(&self.target, &old).map_err(|e| Error::io(&self.target, e))?;
+            Some(old)
+        } else {
+            None
+        };
+        if let Err(e) = fs::rename(&self.temp, &self.target) {
+            if let Some(old) = &old {
+                let _ = fs::rename(old, &self.target);
+            }
+            return Err(Error::io(&self.target, e));
+        }
+        self.committed = true;
+        if let Some(old) = old {
+            let _ = fs::remove_dir_all(old);
+        }
+        Ok(())
+    }
+}
+
+impl Drop for StagedDir {
+    /// An output that failed half-way is removed; the final name never saw it.
+    fn drop(&mut self) {
+        if !self.committed {
+            let _ = fs::remove_dir_all(&self.temp);
+        }
+    }
+}
+
+fn check_replaceable(target: &Path, force: bool, marker: &str) -> Result<()> {
+    let meta = match fs::symlink_metadata(target) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(Error::io(target, e)),
+        Ok(meta) => meta,
+    };
+    if !meta.is_dir() {
+        return Err(Error::image(
+            target,
+            "exists and is not a folder; choose another output folder",
+        ));
+    }
+    let mut entries = fs::read_dir(target).map_err(|e| Error::io(target, e))?;
+    if entries.next().is_none() {
+        return Ok(());
+    }
+    if !target.join(marker).is_file() {
+        return Err(Error::image(
+            target,
+            format!(
+                "is not empty and holds no {marker}, so it is not a psscan output; psscan \
+                 will not replace it (choose another output folder)"
+            ),
+        ));
+    }
+    if !force {
+        return Err(Error::Exists {
+            path: target.to_path_buf(),
+        });
+    }
+    Ok(())
+}
+
+fn temp_sibling_with(path: &Path, kind: &str) -> PathBuf {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+    let name = path
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    path.with_file_name(format!("{name}.{kind}-{}-{n}", std::process::id()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -76,6 +189,48 @@ mod tests {
         let path = dir.path().join("missing").join("a.txt");
         let err = write_atomic(&path, b"x").unwrap_err().to_string();
         assert!(err.contains("a.txt"), "{err}");
+    }
+
+    #[test]
+    fn a_staged_folder_appears_whole_or_not_at_all() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("maps");
+        // Dropped before commit (a failure half-way): nothing remains.
+        let stage = StagedDir::create(&out, false, "report.json").unwrap();
+        fs::write(stage.path().join("normal.png"), b"half").unwrap();
+        drop(stage);
+        assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 0);
+
+        let stage = StagedDir::create(&out, false, "report.json").unwrap();
+        fs::write(stage.path().join("report.json"), b"1").unwrap();
+        stage.commit(false, "report.json").unwrap();
+        assert_eq!(fs::read(out.join("report.json")).unwrap(), b"1");
+        assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
+
+        // An existing output needs force, and is then replaced as a whole.
+        let err = StagedDir::create(&out, false, "report.json").err().unwrap();
+        assert!(err.to_string().contains("--force"), "{err}");
+        let stage = StagedDir::create(&out, true, "report.json").unwrap();
+        fs::write(stage.path().join("report.json"), b"2").unwrap();
+        stage.commit(true, "report.json").unwrap();
+        assert_eq!(fs::read(out.join("report.json")).unwrap(), b"2");
+        assert_eq!(fs::read_dir(&out).unwrap().count(), 1);
+        assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn a_folder_of_other_files_is_never_replaced() {
+        let dir = tempfile::tempdir().unwrap();
+        fs::write(dir.path().join("thesis.tex"), b"precious").unwrap();
+        let err = StagedDir::create(dir.path(), true, "report.json")
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("not a psscan output"), "{err}");
+        // An empty folder is fine.
+        let empty = dir.path().join("empty");
+        fs::create_dir(&empty).unwrap();
+        assert!(StagedDir::create(&empty, false, "report.json").is_ok());
     }
 
     #[test]

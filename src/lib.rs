@@ -4,7 +4,8 @@
 //! [`capture`] produces capture sets on disk (the synthetic rig in [`synth`] produces the same
 //! sets with ground truth); [`raw`] decodes frames into linear [`plane::Frames`]; [`solve`]
 //! turns frames into a [`solve::SolveResult`]; [`maps`] writes the maps and the report.
-//! [`pipeline`] strings the stages together for the CLI.
+//! [`pipeline`] strings the stages together for the CLI; [`offline`] solves saved sets in
+//! batches.
 
 // Pixel and channel loops index several parallel planes at once; an index reads better there
 // than zipped iterators.
@@ -16,6 +17,7 @@ pub mod error;
 pub mod eval;
 pub mod fsutil;
 pub mod maps;
+pub mod offline;
 pub mod pipeline;
 pub mod plane;
 pub mod progress;

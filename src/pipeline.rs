@@ -11,19 +11,51 @@ use crate::capture::{
     light_file_name, CameraSettings, CaptureSet, CaptureSetWriter, FrameKind, ImageInfo,
     SyntheticInfo,
 };
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::eval::{self, Stats};
-use crate::fsutil::{create_dir_all, write_atomic};
+use crate::fsutil::{create_dir_all, write_atomic, StagedDir};
 use crate::maps::{self, report::Mean, MapOptions, Report, WrittenMaps};
-use crate::plane::{Plane, RgbPlanes};
-use crate::progress::Progress;
-use crate::raw::{encode_png16, Levels};
+use crate::plane::{Plane, RgbPlanes, SensorWindow};
+use crate::progress::{Progress, Silent};
+use crate::raw::{
+    encode_dng, encode_png16, DecodeInfo, DevelopOptions, DngStorage, Levels, Mosaic, RawMeta,
+    Resolution,
+};
 use crate::rig::Rig;
 use crate::solve::{self, NoiseModel, SolveInput, SolveOptions};
-use crate::synth::{expose, Scene, SynthSpec};
+use crate::synth::{expose, expose_mosaic, FrameEncoding, Scene, SynthSpec};
 
 pub const TRUTH_DIR: &str = "truth";
 pub const SPEC_FILE: &str = "truth/spec.toml";
+
+/// The CFA layout of psscan's synthetic camera.
+pub const SYNTH_CFA: &str = "RGGB";
+
+/// What the synthetic camera writes into its DNG files and the manifest.
+fn synthetic_camera(encoding: FrameEncoding) -> (CameraSettings, RawMeta) {
+    let meta = RawMeta {
+        make: "psscan".into(),
+        model: "synthetic camera".into(),
+        width: 0,
+        height: 0,
+        iso: Some(100),
+        shutter_s: Some(0.1),
+        aperture: Some(8.0),
+    };
+    let settings = match encoding {
+        FrameEncoding::Dn16 => CameraSettings {
+            model: "psscan synthetic camera".into(),
+            ..Default::default()
+        },
+        FrameEncoding::Dng => CameraSettings {
+            model: meta.camera(),
+            iso: meta.iso,
+            shutter_s: meta.shutter_s,
+            aperture: meta.aperture,
+        },
+    };
+    (settings, meta)
+}
 
 /// What `write_synthetic_set` produced.
 #[derive(Clone, Debug, Serialize)]
@@ -36,8 +68,10 @@ pub struct SynthOutcome {
 }
 
 /// Renders the textile under `rig` as `spec` says and writes it as a capture set in `dir`:
-/// a dark frame, one 16-bit PNG of raw digital numbers per LED, the manifest, a copy of the
-/// rig, and the ground truth (`truth/normal.exr`, `truth/albedo.exr`, `truth/spec.toml`).
+/// a dark frame, one frame per LED, the manifest, a copy of the rig, and the ground truth
+/// (`truth/normal.exr`, `truth/albedo.exr`, `truth/spec.toml`). Frames are 16-bit PNGs of raw
+/// digital numbers (`dn16`) or DNG files of an RGGB mosaic in which each sensor pixel records
+/// its own channel of the rendered pixel (`raw`).
 pub fn write_synthetic_set(
     rig: &Rig,
     spec: &SynthSpec,
@@ -59,17 +93,42 @@ pub fn write_synthetic_set(
     )?;
     timings.insert("scene".into(), start.elapsed().as_secs_f64());
 
+    let (encoding, extension) = match spec.encoding {
+        FrameEncoding::Dn16 => (crate::capture::manifest::ENCODING_DN16, "png"),
+        FrameEncoding::Dng => (crate::capture::manifest::ENCODING_RAW, "dng"),
+    };
     let image = ImageInfo {
         width: spec.width,
         height: spec.height,
         window,
         levels: Levels::from_sensor(&rig.sensor),
         exposure: spec.exposure,
-        encoding: "dn16".into(),
+        encoding: encoding.into(),
     };
-    let camera = CameraSettings {
-        model: "psscan synthetic camera".into(),
-        ..Default::default()
+    let (camera, raw_meta) = synthetic_camera(spec.encoding);
+    let encode_frame = |linear: &RgbPlanes, stream: u64| -> Result<Vec<u8>> {
+        match spec.encoding {
+            FrameEncoding::Dn16 => encode_png16(&expose(linear, &rig.sensor, spec.noise(), stream)),
+            FrameEncoding::Dng => {
+                let pattern = Mosaic::parse_pattern(SYNTH_CFA).expect("a valid pattern");
+                let black = rig.sensor.black_level as f32;
+                let mosaic = Mosaic {
+                    width: spec.width,
+                    height: spec.height,
+                    pattern,
+                    black: [[black; 2]; 2],
+                    white: rig.sensor.white_level as f32,
+                    samples: expose_mosaic(linear, pattern, &rig.sensor, spec.noise(), stream),
+                };
+                encode_dng(
+                    &mosaic,
+                    &raw_meta,
+                    rig.sensor.bits,
+                    rig.sensor.channel_gain,
+                    DngStorage::Lossless,
+                )
+            }
+        }
     };
     let mut writer = CaptureSetWriter::create(dir, rig, image, camera, force)?;
     write_truth(&scene, spec, dir)?;
@@ -81,17 +140,20 @@ pub fn write_synthetic_set(
     let start = Instant::now();
     progress.begin("render", rig.leds.len() as u64 + 1);
     let dark = RgbPlanes::new(spec.width, spec.height);
-    let dn = expose(&dark, &rig.sensor, spec.noise(), 0);
-    writer.add_frame(FrameKind::Dark, None, "dark.png", &encode_png16(&dn)?)?;
+    writer.add_frame(
+        FrameKind::Dark,
+        None,
+        &format!("dark.{extension}"),
+        &encode_frame(&dark, 0)?,
+    )?;
     progress.advance(1);
     for k in 0..rig.leds.len() {
         let linear = scene.render_light(k, spec.exposure);
-        let dn = expose(&linear, &rig.sensor, spec.noise(), k as u64 + 1);
         writer.add_frame(
             FrameKind::Light,
             Some(k),
-            &light_file_name(k, "png"),
-            &encode_png16(&dn)?,
+            &light_file_name(k, extension),
+            &encode_frame(&linear, k as u64 + 1)?,
         )?;
         progress.advance(1);
     }
@@ -133,6 +195,97 @@ pub fn write_truth(scene: &Scene, spec: &SynthSpec, dir: &Path) -> Result<()> {
     write_atomic(&dir.join(SPEC_FILE), text.as_bytes())
 }
 
+/// Ground-truth normal and albedo of a synthetic set for a solve of its frames developed as
+/// `decode` says: the stored truth at full resolution; for 2x2-binned RAW frames the stored
+/// truth binned the way binning measures the surface ([`bin_truth`]).
+pub fn truth_for(
+    set: &CaptureSet,
+    decode: &DecodeInfo,
+) -> Result<Option<([Plane; 3], [Plane; 3])>> {
+    let Some((normal, albedo)) = read_truth(set)? else {
+        return Ok(None);
+    };
+    match (decode.resolution, decode.cfa_pattern.as_deref()) {
+        (Resolution::Full, _) => Ok(Some((normal, albedo))),
+        (Resolution::Half, Some(pattern)) => {
+            let pattern = Mosaic::parse_pattern(pattern)
+                .ok_or_else(|| Error::Invalid(format!("CFA pattern {pattern}")))?;
+            Ok(Some(bin_truth(&normal, &albedo, pattern)))
+        }
+        (Resolution::Half, None) => Ok(None),
+    }
+}
+
+/// What a 2x2-binned pixel of a Lambertian surface measures. Its luminance under a light `l`
+/// is `sum_s w_s a_s (n_s . l)` over the cell's four CFA sites `s` (R, B at weight 1, each G
+/// at 1/2, times the luminance weight of the site's channel; `a_s` the site's albedo in its
+/// channel): exactly the luminance of a surface with scaled normal `N = sum_s w_s a_s n_s`.
+/// Its normal is `N / |N|`; the albedo of channel `c` is the scaled normal of that channel's
+/// sites projected on it. (Exact while all four sites face the light and see it from the same
+/// direction; the few micrometres between sites change the near lights' direction by ~1e-5.)
+pub fn bin_truth(
+    normal: &[Plane; 3],
+    albedo: &[Plane; 3],
+    pattern: [[u8; 2]; 2],
+) -> ([Plane; 3], [Plane; 3]) {
+    let (w, h) = Resolution::Half.size(normal[0].width, normal[0].height);
+    let mut n_out: [Plane; 3] = std::array::from_fn(|_| Plane::new(w, h, 0.0));
+    let mut a_out: [Plane; 3] = std::array::from_fn(|_| Plane::new(w, h, 0.0));
+    let width = normal[0].width;
+    for v in 0..h {
+        for u in 0..w {
+            let mut scaled = nalgebra::Vector3::zeros();
+            let mut per_channel = [nalgebra::Vector3::<f64>::zeros(); 3];
+            for j in 0..2 {
+                for i in 0..2 {
+                    let at = (2 * v + j) * width + 2 * u + i;
+                    let c = pattern[j][i] as usize;
+                    let share = if c == 1 { 0.5 } else { 1.0 };
+                    let n = nalgebra::Vector3::from_fn(|k, _| normal[k].data[at] as f64);
+                    let a = albedo[c].data[at] as f64;
+                    scaled += n * (solve::LUMINANCE_WEIGHTS[c] * share * a);
+                    per_channel[c] += n * (share * a);
+                }
+            }
+            let unit = scaled.normalize();
+            for k in 0..3 {
+                n_out[k].data[v * w + u] = unit[k] as f32;
+                a_out[k].data[v * w + u] = per_channel[k].dot(&unit) as f32;
+            }
+        }
+    }
+    (n_out, a_out)
+}
+
+/// Ground-truth normal and albedo of a synthetic set at the centres of `width x height` pixels
+/// at `window`: the scene rebuilt from the stored spec and rig (for example the point truth at
+/// the centres of binned cells, to compare with [`bin_truth`]).
+pub fn truth_at_pixels(
+    set: &CaptureSet,
+    width: usize,
+    height: usize,
+    window: SensorWindow,
+) -> Result<Option<([Plane; 3], [Plane; 3])>> {
+    let Some(info) = &set.manifest.synthetic else {
+        return Ok(None);
+    };
+    let spec_path = set.dir.join(&info.spec_file);
+    let text = std::fs::read_to_string(&spec_path).map_err(|e| Error::io(&spec_path, e))?;
+    let spec: SynthSpec = toml::from_str(&text)
+        .map_err(|e| Error::config(&spec_path, "spec", e.message().to_string()))?;
+    let rig = Rig::load(&set.dir.join(&set.manifest.rig_file))?;
+    let scene = Scene::build(
+        &rig,
+        spec.textile,
+        width,
+        height,
+        window,
+        spec.scene,
+        &Silent,
+    )?;
+    Ok(Some((scene.truth.normal, scene.truth.albedo)))
+}
+
 /// Ground-truth normal and albedo of a synthetic set.
 pub fn read_truth(set: &CaptureSet) -> Result<Option<([Plane; 3], [Plane; 3])>> {
     let Some(info) = &set.manifest.synthetic else {
@@ -157,9 +310,12 @@ pub struct SolveJob {
     pub rig: Option<Rig>,
     /// Overwrite an existing solve in the output folder.
     pub force: bool,
+    /// How frames are developed (resolution, dark-frame subtraction).
+    pub develop: DevelopOptions,
 }
 
-/// Solves the capture set in `dir` and writes maps and `report.json` into `out`.
+/// Solves the capture set in `dir` and writes maps and `report.json` into `out`. The output
+/// is built beside `out` and renamed into place when complete.
 pub fn solve_capture_set(
     dir: &Path,
     out: &Path,
@@ -167,20 +323,22 @@ pub fn solve_capture_set(
     progress: &dyn Progress,
 ) -> Result<Report> {
     let total = Instant::now();
-    maps::prepare_output_dir(out, job.force)?;
+    let stage = StagedDir::create(out, job.force, maps::REPORT_FILE)?;
     let mut timings = BTreeMap::new();
 
     let start = Instant::now();
     let set = CaptureSet::open(dir, job.rig.clone())?;
-    let frames = set.load_frames(progress)?;
+    let loaded = set.load_frames_with(&job.develop, progress)?;
+    let frames = loaded.frames;
+    let mut decode = loaded.info;
+    decode.undistortion = undistortion_note(&set.rig);
     timings.insert("decode".into(), start.elapsed().as_secs_f64());
 
     let start = Instant::now();
-    let noise = noise_model(&set.rig, &set.manifest.image.levels);
     let input = SolveInput {
         frames: &frames,
         lights: solve::LightSource::Rig(&set.rig),
-        noise,
+        noise: decoded_noise_model(&set.rig, &decode),
         exposure: set.manifest.image.exposure,
         mask: None,
     };
@@ -189,17 +347,66 @@ pub fn solve_capture_set(
     drop(frames);
 
     let start = Instant::now();
-    let outputs = maps::write_maps(&result, out, &job.maps)?;
+    let outputs = maps::write_maps(&result, stage.path(), &job.maps)?;
     timings.insert("write".into(), start.elapsed().as_secs_f64());
 
+    let outputs = relocate(outputs, out);
     let mut report = Report::new(dir, &set.rig.name, &result, &job.options, outputs);
-    if let Some((normal, albedo)) = read_truth(&set)? {
+    if let Some((normal, albedo)) = truth_for(&set, &decode)? {
         report.truth = Some(eval::compare(&result, &normal, &albedo));
     }
+    report.decode = Some(decode);
     timings.insert("total".into(), total.elapsed().as_secs_f64());
     report.timings_s = timings;
-    report.write(&out.join(maps::REPORT_FILE))?;
+    report.write(&stage.path().join(maps::REPORT_FILE))?;
+    stage.commit(job.force, maps::REPORT_FILE)?;
     Ok(report)
+}
+
+/// The written maps' paths under their final folder name.
+pub fn relocate(outputs: WrittenMaps, out: &Path) -> WrittenMaps {
+    let moved = |p: PathBuf| out.join(p.file_name().expect("map files have names"));
+    WrittenMaps {
+        normal_png: outputs.normal_png.map(moved),
+        normal_exr: outputs.normal_exr.map(moved),
+        albedo_png: outputs.albedo_png.map(moved),
+        albedo_exr: outputs.albedo_exr.map(moved),
+        confidence_exr: moved(outputs.confidence_exr),
+    }
+}
+
+/// How lens distortion is handled: the frames are never resampled; the solver maps each
+/// pixel's centre through the rig camera's model (undistorting its ray) to the point on the
+/// sample it sees, so the light directions and falloff are those of the right point.
+pub fn undistortion_note(rig: &Rig) -> String {
+    let d = rig.camera.distortion;
+    if d.iter().all(|&k| k == 0.0) {
+        "none needed: the rig's camera has no distortion coefficients (k1 k2 p1 p2 k3 all 0); \
+         frames are not resampled"
+            .into()
+    } else {
+        format!(
+            "per pixel, no resampling: the solver maps each pixel centre through the rig \
+             camera's distortion model (k1 k2 p1 p2 k3 = {d:?}) to the point on the sample it \
+             sees; the maps stay in the camera's (distorted) pixel grid"
+        )
+    }
+}
+
+/// The noise of frames developed as `decode` says: the sensor at the frames' levels, each
+/// channel's variance scaled by the development, and the dark frame's noise added when it was
+/// subtracted (a second read-noise and quantisation floor; the all-off frame holds no signal
+/// whose photon noise would count).
+pub fn decoded_noise_model(rig: &Rig, decode: &DecodeInfo) -> NoiseModel {
+    let mut noise = noise_model(rig, &decode.levels).with_channel_scale(decode.noise_channel_scale);
+    if decode.dark_subtracted {
+        noise.floor *= 2.0;
+    }
+    noise.shared_cfa_sample = decode
+        .noise_shared_cfa_sample
+        .as_deref()
+        .and_then(Mosaic::parse_pattern);
+    noise
 }
 
 /// The sensor's noise at the levels the frames were stored with.

@@ -13,6 +13,13 @@ pub const MANIFEST_FILE: &str = "manifest.toml";
 pub const FORMAT: &str = "psscan-capture";
 pub const VERSION: u32 = 1;
 
+/// `image.encoding` of sets whose frames are 16-bit RGB PNG/TIFF of raw digital numbers.
+pub const ENCODING_DN16: &str = "dn16";
+/// `image.encoding` of sets whose frames are camera RAW files (NEF, CR2, DNG, ...): the CFA
+/// samples and their levels come from each file.
+pub const ENCODING_RAW: &str = "raw";
+pub const ENCODINGS: [&str; 2] = [ENCODING_DN16, ENCODING_RAW];
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Manifest {
@@ -37,12 +44,15 @@ pub struct Manifest {
 pub struct ImageInfo {
     pub width: usize,
     pub height: usize,
-    /// Where the image pixels sit on the sensor.
+    /// Where the image pixels sit on the sensor (for `raw`: where the CFA samples sit).
     pub window: SensorWindow,
+    /// The digital levels of `dn16` frames. `raw` frames carry their own (per CFA site) and
+    /// these are informational.
     pub levels: Levels,
     /// Exposure relative to the one the rig's LED powers were measured at.
     pub exposure: f64,
-    /// How frames are stored: `dn16` = 16-bit RGB PNG/TIFF of raw digital numbers.
+    /// How frames are stored: `dn16` = 16-bit RGB PNG/TIFF of raw digital numbers; `raw` =
+    /// camera RAW files (the CFA samples; width and height are the mosaic's).
     pub encoding: String,
 }
 
@@ -149,10 +159,31 @@ impl Manifest {
         if !(self.image.exposure.is_finite() && self.image.exposure > 0.0) {
             return fail("image.exposure".into(), "must be positive".into());
         }
+        if !ENCODINGS.contains(&self.image.encoding.as_str()) {
+            return fail(
+                "image.encoding".into(),
+                format!(
+                    "unknown frame encoding \"{}\" (this psscan reads {})",
+                    self.image.encoding,
+                    ENCODINGS.join(", ")
+                ),
+            );
+        }
         let mut seen_lights = std::collections::HashSet::new();
+        let mut seen_files = std::collections::HashSet::new();
         let mut seen_dark = false;
         for (i, frame) in self.frames.iter().enumerate() {
             check_inside(&frame.file).or_else(|m| fail(format!("frames[{i}].file"), m))?;
+            let normalised: std::path::PathBuf = Path::new(&frame.file)
+                .components()
+                .filter(|c| !matches!(c, Component::CurDir))
+                .collect();
+            if !seen_files.insert(normalised) {
+                return fail(
+                    format!("frames[{i}].file"),
+                    format!("\"{}\" is listed for more than one frame", frame.file),
+                );
+            }
             match (frame.kind, frame.light) {
                 (FrameKind::Light, Some(k)) => {
                     if !seen_lights.insert(k) {
@@ -199,7 +230,7 @@ impl Manifest {
 
 /// A file name in a manifest must be a plain relative path inside the set: no `..`, no
 /// absolute paths, no drive prefixes.
-fn check_inside(name: &str) -> std::result::Result<(), String> {
+pub(crate) fn check_inside(name: &str) -> std::result::Result<(), String> {
     let path = Path::new(name);
     if name.is_empty() {
         return Err("empty file name".into());
@@ -298,9 +329,35 @@ mod tests {
     }
 
     #[test]
+    fn a_file_listed_twice_and_unknown_encodings_are_refused() {
+        let mut m = sample();
+        m.frames[1].file = "./dark.png".into();
+        let err = Manifest::parse(&m.to_toml_string(), Path::new("m.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("frames[1].file") && err.contains("more than one"),
+            "{err}"
+        );
+
+        let mut m = sample();
+        m.image.encoding = "jpeg".into();
+        let err = Manifest::parse(&m.to_toml_string(), Path::new("m.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("image.encoding") && err.contains("jpeg"),
+            "{err}"
+        );
+        m.image.encoding = ENCODING_RAW.into();
+        assert!(Manifest::parse(&m.to_toml_string(), Path::new("m.toml")).is_ok());
+    }
+
+    #[test]
     fn duplicate_lights_are_refused() {
         let mut m = sample();
-        let dup = m.frames[1].clone();
+        let mut dup = m.frames[1].clone();
+        dup.file = "L00-again.png".into();
         m.frames.push(dup);
         let err = Manifest::parse(&m.to_toml_string(), Path::new("m.toml"))
             .unwrap_err()

@@ -4,6 +4,7 @@
 //! on disk (manifest, atomic frame writes, checked reading, resume).
 
 pub mod camera;
+pub mod diligent;
 pub mod emulator;
 pub mod interrupt;
 pub mod lights;
@@ -11,7 +12,8 @@ pub mod manifest;
 pub mod sequencer;
 pub mod set;
 
+pub use diligent::DiligentSet;
 pub use interrupt::Interrupt;
 pub use manifest::{CameraSettings, FrameEntry, FrameKind, ImageInfo, Manifest, SyntheticInfo};
 pub use sequencer::{run_capture, CaptureOptions, CaptureReport, FrameRecord, FrameStatus};
-pub use set::{light_file_name, CaptureSet, CaptureSetWriter, DroppedFrame};
+pub use set::{light_file_name, CaptureSet, CaptureSetWriter, DroppedFrame, LoadedFrames};

@@ -13,7 +13,10 @@ use crate::error::{Error, Result};
 use crate::fsutil::{create_dir_all, sha256_hex, write_atomic};
 use crate::plane::Frames;
 use crate::progress::Progress;
-use crate::raw::decode_dn_image;
+use crate::raw::{
+    check_consistent, decode_frame, develop_frames, DecodeInfo, DecodedFrame, DevelopOptions,
+    Encoding, RawMeta, Resolution,
+};
 use crate::rig::Rig;
 
 pub const RIG_FILE: &str = "rig.toml";
@@ -145,6 +148,42 @@ pub struct DroppedFrame {
     pub reason: String,
 }
 
+/// Reads the file `name` of the set in `dir`: a plain file inside the folder, not a link and
+/// not reached through one.
+pub(crate) fn read_inside(dir: &Path, name: &str) -> Result<(PathBuf, Vec<u8>)> {
+    let path = dir.join(name);
+    super::manifest::check_inside(name).map_err(|m| Error::image(&path, m))?;
+    let meta = std::fs::symlink_metadata(&path).map_err(|e| Error::io(&path, e))?;
+    if meta.file_type().is_symlink() {
+        return Err(Error::image(
+            &path,
+            "is a symbolic link; capture set frames must be plain files inside the set",
+        ));
+    }
+    let inside = match (dir.canonicalize(), path.canonicalize()) {
+        (Ok(dir), Ok(file)) => file.starts_with(dir),
+        _ => false,
+    };
+    if !inside {
+        return Err(Error::image(
+            &path,
+            "lies outside the capture set's folder (a folder on its way is a link); \
+             capture set frames must be plain files inside the set",
+        ));
+    }
+    if !meta.is_file() {
+        return Err(Error::image(&path, "is not a plain file"));
+    }
+    let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
+    Ok((path, bytes))
+}
+
+/// A set's light frames developed for a solve, and how they were made.
+pub struct LoadedFrames {
+    pub frames: Frames,
+    pub info: DecodeInfo,
+}
+
 /// A capture set opened for reading.
 pub struct CaptureSet {
     pub dir: PathBuf,
@@ -210,17 +249,10 @@ impl CaptureSet {
             .collect())
     }
 
-    /// Reads a frame's bytes, refusing links and checking the recorded SHA-256.
+    /// Reads a frame's bytes, refusing links (of the file or of a folder on its way) and
+    /// checking the recorded SHA-256.
     pub fn read_frame_bytes(&self, entry: &FrameEntry) -> Result<(PathBuf, Vec<u8>)> {
-        let path = self.dir.join(&entry.file);
-        let meta = std::fs::symlink_metadata(&path).map_err(|e| Error::io(&path, e))?;
-        if meta.file_type().is_symlink() {
-            return Err(Error::image(
-                &path,
-                "is a symbolic link; capture set frames must be plain files inside the set",
-            ));
-        }
-        let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
+        let (path, bytes) = read_inside(&self.dir, &entry.file)?;
         let actual = sha256_hex(&bytes);
         if actual != entry.sha256 {
             return Err(Error::image(
@@ -235,44 +267,168 @@ impl CaptureSet {
         Ok((path, bytes))
     }
 
-    /// Verifies and decodes every light frame into linear planes (frames decode in parallel).
+    /// Verifies and decodes every light frame into linear planes at full resolution, with
+    /// the dark frame subtracted when the set has one.
     pub fn load_frames(&self, progress: &dyn Progress) -> Result<Frames> {
+        Ok(self
+            .load_frames_with(&DevelopOptions::default(), progress)?
+            .frames)
+    }
+
+    /// Verifies, decodes and develops every light frame (in parallel) as `options` say: RAW
+    /// frames binned or demosaiced, the all-off frame subtracted, RAW metadata checked across
+    /// the set.
+    pub fn load_frames_with(
+        &self,
+        options: &DevelopOptions,
+        progress: &dyn Progress,
+    ) -> Result<LoadedFrames> {
         let entries = self.light_entries()?;
         let image = &self.manifest.image;
-        if image.encoding != "dn16" {
-            return Err(Error::Unsupported(format!(
-                "{}: frame encoding \"{}\" is not supported by this build (supported: dn16)",
+        let encoding = Encoding::parse(&image.encoding).ok_or_else(|| {
+            Error::Unsupported(format!(
+                "{}: frame encoding \"{}\" is not supported by this build",
                 self.dir.display(),
                 image.encoding
+            ))
+        })?;
+        if encoding == Encoding::Dn16 && options.resolution != Resolution::Full {
+            return Err(Error::Unsupported(format!(
+                "{}: half resolution is 2x2 CFA binning of RAW frames; this set stores dn16 RGB \
+                 frames, solve it at full resolution",
+                self.dir.display()
             )));
         }
-        progress.begin("decode", entries.len() as u64);
-        let lights = entries
+        let dark = self.manifest.dark_frame();
+        let subtracted = dark.filter(|_| options.subtract_dark);
+        // Decode the dark frame with the lights (it is checked with them too).
+        let jobs: Vec<&FrameEntry> = dark.into_iter().chain(entries.iter().copied()).collect();
+        progress.begin("decode", jobs.len() as u64);
+        let decoded = jobs
             .par_iter()
             .map(|entry| {
                 let (path, bytes) = self.read_frame_bytes(entry)?;
-                let dn = decode_dn_image(&bytes, &path)?;
-                if dn.width != image.width || dn.height != image.height {
+                let frame = decode_frame(bytes, &path, encoding, &image.levels)?;
+                if frame.stored_size != (image.width, image.height) {
                     return Err(Error::image(
                         &path,
                         format!(
                             "is {}x{}, the manifest says {}x{}",
-                            dn.width, dn.height, image.width, image.height
+                            frame.stored_size.0, frame.stored_size.1, image.width, image.height
                         ),
                     ));
                 }
-                let frame = dn.to_light_frame(&image.levels);
                 progress.advance(1);
                 Ok(frame)
             })
-            .collect::<Result<Vec<_>>>()?;
+            .collect::<Result<Vec<DecodedFrame>>>()?;
         progress.end();
-        Ok(Frames {
-            width: image.width,
-            height: image.height,
-            window: image.window,
+        if encoding == Encoding::Raw {
+            let metas: Vec<(String, &RawMeta)> = jobs
+                .iter()
+                .zip(&decoded)
+                .filter_map(|(e, d)| Some((e.file.clone(), d.meta.as_ref()?)))
+                .collect();
+            check_consistent(&metas).map_err(|m| Error::capture_set(&self.dir, m))?;
+            self.check_camera_settings(&metas)?;
+        }
+        let mut decoded = decoded.into_iter();
+        let dark_frame = dark.and_then(|_| decoded.next());
+        let lights: Vec<DecodedFrame> = decoded.collect();
+        let first = &lights[0];
+        let full_raw = encoding == Encoding::Raw && options.resolution == Resolution::Full;
+        let info = DecodeInfo {
+            encoding: encoding.name().into(),
+            resolution: options.resolution,
+            method: match encoding {
+                Encoding::Raw => options.resolution.method().into(),
+                Encoding::Dn16 => "none: the frames store R, G and B at every pixel".into(),
+            },
+            cfa_pattern: first.cfa_pattern.clone(),
+            levels: first.levels,
+            camera: first.meta.clone(),
+            dark_frame: match (dark, subtracted) {
+                (Some(d), Some(_)) => format!(
+                    "{} subtracted sample by sample (its noise is counted: the noise model's \
+                     floor is doubled)",
+                    d.file
+                ),
+                (Some(d), None) => format!("{} present, not subtracted (asked not to)", d.file),
+                (None, _) => "none in the set".into(),
+            },
+            dark_subtracted: subtracted.is_some(),
+            noise_channel_scale: match encoding {
+                Encoding::Raw => options.resolution.channel_variance_scale(),
+                Encoding::Dn16 => [1.0; 3],
+            },
+            noise_shared_cfa_sample: first.cfa_pattern.clone().filter(|_| full_raw),
+            undistortion: String::new(),
+        };
+        // The lights' raw colours: the stack demosaic scales each light's missing channels by
+        // them (the LEDs' power cancels out).
+        let illuminants: Vec<[f64; 3]> = self
+            .rig
+            .leds
+            .iter()
+            .map(|led| std::array::from_fn(|c| led.color[c] * self.rig.sensor.channel_gain[c]))
+            .collect();
+        let frames = develop_frames(
             lights,
+            dark_frame.filter(|_| subtracted.is_some()),
+            Some(&illuminants),
+            options.resolution,
+        )
+        .map_err(|e| Error::capture_set(&self.dir, e.to_string()))?;
+        let (width, height) = match encoding {
+            Encoding::Raw => options.resolution.size(image.width, image.height),
+            Encoding::Dn16 => (image.width, image.height),
+        };
+        Ok(LoadedFrames {
+            frames: Frames {
+                width,
+                height,
+                window: options.resolution.window(image.window),
+                lights: frames,
+            },
+            info,
         })
+    }
+
+    /// RAW metadata against the camera settings the manifest recorded at capture.
+    fn check_camera_settings(&self, metas: &[(String, &RawMeta)]) -> Result<()> {
+        let settings = &self.manifest.camera;
+        let close = |a: f64, b: f64| (a / b - 1.0).abs() <= 0.01;
+        let mut odd = Vec::new();
+        for (file, meta) in metas {
+            if let (Some(want), Some(got)) = (settings.iso, meta.iso) {
+                if want != got {
+                    odd.push(format!("{file} has ISO {got}, the manifest ISO {want}"));
+                }
+            }
+            if let (Some(want), Some(got)) = (settings.shutter_s, meta.shutter_s) {
+                if !close(got, want) {
+                    odd.push(format!("{file} has shutter {got} s, the manifest {want} s"));
+                }
+            }
+            if let (Some(want), Some(got)) = (settings.aperture, meta.aperture) {
+                if !close(got, want) {
+                    odd.push(format!(
+                        "{file} has aperture f/{got}, the manifest f/{want}"
+                    ));
+                }
+            }
+        }
+        if odd.is_empty() {
+            Ok(())
+        } else {
+            Err(Error::capture_set(
+                &self.dir,
+                format!(
+                    "frames disagree with the camera settings recorded at capture: {}",
+                    odd.join("; ")
+                ),
+            ))
+        }
     }
 }
 

@@ -10,10 +10,12 @@ use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use psscan::maps::{MapOptions, NormalConvention};
+use psscan::offline::{self, BatchOptions, BatchSummary};
 use psscan::pipeline::{self, DemoSummary, SolveJob};
+use psscan::raw::{DevelopOptions, Resolution};
 use psscan::rig::Rig;
 use psscan::solve::{LightModel, Method, SolveOptions};
-use psscan::synth::{Sheen, SynthSpec};
+use psscan::synth::{FrameEncoding, Sheen, SynthSpec};
 
 use progress::Bars;
 
@@ -40,7 +42,7 @@ enum Command {
     Demo(DemoArgs),
     /// Render a synthetic capture set (frames, manifest, ground truth).
     Synth(SynthArgs),
-    /// Solve a capture set into maps and a report.
+    /// Solve capture sets (psscan's, or the DiLiGenT benchmark layout) into maps and reports.
     Solve(SolveArgs),
     /// Shoot a capture set: a dark frame, then one frame per LED, through the LED controller
     /// and a camera; resumable.
@@ -102,6 +104,16 @@ struct SceneArgs {
     /// Seed of the sensor noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// How frames are stored: dn16 (16-bit RGB PNGs of raw numbers) or dng (Bayer RAW files,
+    /// decoded like a camera's).
+    #[arg(long, value_enum, default_value_t = EncodingArg::Dn16)]
+    encoding: EncodingArg,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum EncodingArg {
+    Dn16,
+    Dng,
 }
 
 impl SceneArgs {
@@ -114,23 +126,33 @@ impl SceneArgs {
         spec.scene.shadow_fill = if self.shadows { 0.15 } else { 0.0 };
         spec.scene.sheen = self.sheen.then(Sheen::default);
         spec.noise_seed = (!self.noise_free).then_some(self.seed);
+        spec.encoding = match self.encoding {
+            EncodingArg::Dn16 => FrameEncoding::Dn16,
+            EncodingArg::Dng => FrameEncoding::Dng,
+        };
         spec
     }
 }
 
 #[derive(Args)]
 struct SolveArgs {
-    /// Capture set folder (holds manifest.toml).
-    set: PathBuf,
-    /// Folder for the maps and report.json.
+    /// Capture set folders (manifest.toml) or DiLiGenT-layout folders (filenames.txt,
+    /// light_directions.txt, ...).
+    #[arg(required = true)]
+    sets: Vec<PathBuf>,
+    /// Folder for the maps and report.json; with several sets, each gets OUT/<set folder name>.
     #[arg(long)]
     out: PathBuf,
-    /// Rig description to use instead of the copy stored in the set.
+    /// Rig description to use instead of the copy stored in each set.
     #[arg(long)]
     rig: Option<PathBuf>,
-    /// Replace an existing solve in the output folder.
+    /// Replace existing solves in the output folders.
     #[arg(long)]
     force: bool,
+    /// Sets solved at the same time (each set is parallel inside; more sets at once need
+    /// more memory).
+    #[arg(long, default_value_t = BatchOptions::default().parallel_sets)]
+    parallel_sets: usize,
     #[command(flatten)]
     solve: SolveFlags,
 }
@@ -152,6 +174,18 @@ struct SolveFlags {
     /// Do not write EXR normal and albedo maps (the confidence EXR is always written).
     #[arg(long)]
     no_exr: bool,
+    /// RAW frames: full (bilinear demosaic) or half (2x2 CFA binning, 4x fewer pixels).
+    #[arg(long, value_enum, default_value_t = ResolutionArg::Full)]
+    resolution: ResolutionArg,
+    /// Do not subtract the set's all-off (dark) frame.
+    #[arg(long)]
+    no_dark: bool,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ResolutionArg {
+    Full,
+    Half,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -193,6 +227,13 @@ impl SolveFlags {
             },
             rig: None,
             force: false,
+            develop: DevelopOptions {
+                resolution: match self.resolution {
+                    ResolutionArg::Full => Resolution::Full,
+                    ResolutionArg::Half => Resolution::Half,
+                },
+                subtract_dark: !self.no_dark,
+            },
         }
     }
 }
@@ -200,6 +241,9 @@ impl SolveFlags {
 /// Runs the CLI; returns the process exit code.
 pub fn run() -> i32 {
     let cli = Cli::parse();
+    // A corrupt RAW file makes some of rawler's decoders panic; psscan catches that and reports
+    // the file, so the panic's own message is noise.
+    psscan::raw::quiet_decoder_panics();
     let bars = Bars::new(cli.quiet);
     let outcome = match &cli.command {
         Command::Demo(args) => demo(args, cli.json, &bars),
@@ -302,13 +346,69 @@ fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let mut job = args.solve.job();
     job.force = args.force;
     job.rig = args.rig.as_ref().map(|p| Rig::load(p)).transpose()?;
-    let report = pipeline::solve_capture_set(&args.set, &args.out, &job, bars)?;
+    if let [set] = args.sets.as_slice() {
+        let report = offline::solve_set(set, &args.out, &job, bars)?;
+        if json {
+            print_json(&report);
+        } else {
+            print_solve(set, &args.out, &report);
+        }
+        return Ok(());
+    }
+    let options = BatchOptions {
+        parallel_sets: args.parallel_sets.max(1),
+    };
+    let summary = offline::solve_sets(&args.sets, &args.out, &job, options, bars);
     if json {
-        print_json(&report);
+        print_json(&summary);
     } else {
-        print_solve(&args.set, &args.out, &report);
+        print_batch(&summary);
+    }
+    if summary.failed > 0 {
+        anyhow::bail!(
+            "{} of {} sets failed (named above){}",
+            summary.failed,
+            summary.sets.len(),
+            if summary.solved > 0 {
+                "; the others were solved"
+            } else {
+                ""
+            }
+        );
     }
     Ok(())
+}
+
+fn print_batch(summary: &BatchSummary) {
+    for o in &summary.sets {
+        match (&o.summary, &o.error) {
+            (Some(s), _) => {
+                let truth = s
+                    .normal_error_deg
+                    .map(|e| format!(", normal error {e:.3} deg against truth"))
+                    .unwrap_or_default();
+                println!(
+                    "solved  {} -> {} ({}x{}, {} pixels, predicted {:.3} deg{truth}, {:.1} s)",
+                    o.set.display(),
+                    o.out.display(),
+                    s.width,
+                    s.height,
+                    s.solved_pixels,
+                    s.predicted_normal_error_deg,
+                    s.seconds
+                );
+            }
+            (None, error) => eprintln!(
+                "FAILED  {}: {}",
+                o.set.display(),
+                error.as_deref().unwrap_or("unknown error")
+            ),
+        }
+    }
+    println!(
+        "{} solved, {} failed, {:.1} s",
+        summary.solved, summary.failed, summary.seconds
+    );
 }
 
 fn print_solve(set: &Path, out: &Path, report: &psscan::maps::Report) {
@@ -335,6 +435,21 @@ fn print_solve(set: &Path, out: &Path, report: &psscan::maps::Report) {
             truth.normal_error_deg.mean,
             truth.normal_error_deg.p95,
             100.0 * truth.albedo_rel_error.mean
+        );
+    }
+    if let Some(truth) = &report.normal_truth {
+        println!(
+            "  against ground-truth normals over the mask ({} pixels, {} solved): mean {:.3} deg, median {:.3}",
+            truth.mask_pixels,
+            truth.solved,
+            truth.normal_error_deg.mean,
+            truth.normal_error_deg.median
+        );
+    }
+    if let Some(decode) = &report.decode {
+        println!(
+            "  frames: {} ({}); dark frame: {}",
+            decode.encoding, decode.method, decode.dark_frame
         );
     }
     println!(

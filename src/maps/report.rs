@@ -28,6 +28,13 @@ pub struct Report {
     pub truth: Option<TruthComparison>,
     pub timings_s: BTreeMap<String, f64>,
     pub outputs: WrittenMaps,
+    /// How the frames were decoded and prepared (capture sets).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub decode: Option<crate::raw::DecodeInfo>,
+    /// Normals against a ground-truth normal map over an object mask (benchmark sets such as
+    /// DiLiGenT, which have no albedo truth).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub normal_truth: Option<crate::eval::MaskedNormalComparison>,
 }
 
 #[derive(Clone, Copy, Debug, Serialize)]
@@ -74,6 +81,8 @@ impl Report {
             truth: None,
             timings_s: BTreeMap::new(),
             outputs,
+            decode: None,
+            normal_truth: None,
         }
     }
 

@@ -75,8 +75,7 @@ pub fn decode_dn_image(bytes: &[u8], path: &Path) -> Result<DnImage> {
             return Err(Error::image(
                 path,
                 format!(
-                    "expected a 16-bit RGB image of raw values, found {:?}; camera RAW files \
-                     (NEF, CR2, DNG, ...) are not decoded by this build yet",
+                    "expected a 16-bit RGB image of raw values, found {:?}",
                     other.color()
                 ),
             ))

@@ -1,8 +1,28 @@
 //! Decoding captured images into linear `f32` planes: black-level subtraction, normalisation
-//! by the white level, and a per-pixel saturation mask. This module knows nothing about
-//! lights. Today it reads the 16-bit RGB PNG/TIFF frames psscan's synthetic sets use; camera
-//! RAW files (rawler) are the RAW issue's work and are refused with a clear error until then.
+//! by the white level, a per-pixel saturation mask, 2x2 CFA binning or a shading-preserving
+//! demosaic of the whole stack of frames, and dark-frame subtraction. This module knows
+//! nothing about lights beyond their colour.
+//!
+//! Two kinds of frames: camera RAW files (rawler: NEF, CR2, CR3, ARW, RAF, ORF, DNG, ...)
+//! decoded to their CFA samples ([`Mosaic`]), and the 16-bit RGB PNG/TIFF frames of raw
+//! digital numbers of psscan's `dn16` sets ([`DnImage`]). psscan writes DNG too ([`encode_dng`]),
+//! so synthetic capture sets take the path real RAW files take.
 
+mod decode;
+mod develop;
+mod dng;
+mod guard;
 mod linear;
+mod mosaic;
 
+pub use decode::{decode_raw, quiet_decoder_panics, read_raw, DecodedRaw, RawMeta, MAX_SAMPLES};
+pub use develop::{
+    check_consistent, decode_frame, develop_frames, DecodeInfo, DecodedFrame, DevelopOptions,
+    Encoding, FrameData,
+};
+pub use dng::{encode_dng, DngStorage};
 pub use linear::{decode_dn_image, encode_png16, read_dn_image, DnImage, Levels};
+pub use mosaic::{
+    bilinear, develop_stack, subtract_dark, LinearMosaic, Mosaic, Resolution, BLUE, GREEN, RED,
+    SATURATION_MARGIN,
+};

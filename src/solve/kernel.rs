@@ -127,13 +127,16 @@ impl<'a> Kernel<'a> {
         options: &'a SolveOptions,
         illumination: &'a Illumination<'a>,
     ) -> Self {
-        let weights_sq: f64 = LUMINANCE_WEIGHTS.iter().map(|w| w * w).sum();
         Kernel {
             frames: input.frames,
             illumination,
             noise: input.noise,
             inv_exposure: 1.0 / input.exposure,
-            dark_threshold: options.dark_threshold_sigma * (input.noise.floor * weights_sq).sqrt(),
+            dark_threshold: options.dark_threshold_sigma
+                * input
+                    .noise
+                    .luminance_floor_variance(&LUMINANCE_WEIGHTS)
+                    .sqrt(),
             options,
         }
     }
@@ -197,13 +200,16 @@ impl<'a> Kernel<'a> {
             let scale = self.illumination.rgb_scale(k);
             let mut rgb = [0.0; 3];
             let mut lum = 0.0;
-            let mut var = 0.0;
+            let mut inv_intensity = [0.0; 3];
             for c in 0..3 {
-                let inv_intensity = self.inv_exposure / (light.falloff * scale[c]);
-                rgb[c] = raw[c] * inv_intensity;
+                inv_intensity[c] = self.inv_exposure / (light.falloff * scale[c]);
+                rgb[c] = raw[c] * inv_intensity[c];
                 lum += LUMINANCE_WEIGHTS[c] * rgb[c];
-                var += (LUMINANCE_WEIGHTS[c] * inv_intensity).powi(2) * self.noise.variance(raw[c]);
             }
+            let pixel = (i % self.frames.width, i / self.frames.width);
+            let var =
+                self.noise
+                    .luminance_variance(&raw, &inv_intensity, &LUMINANCE_WEIGHTS, lum, pixel);
             out.push(Measurement {
                 l: light.direction,
                 rgb,

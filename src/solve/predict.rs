@@ -13,13 +13,30 @@ use nalgebra::{Matrix3, Vector3};
 
 use crate::rig::Sensor;
 
-/// Variance of a linear measurement `I` (1.0 = white level): `photon * max(I, 0) + floor`.
+/// Variance of a linear measurement `I` (1.0 = white level): `photon * max(I, 0) + floor`,
+/// times the channel's `channel_scale`.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct NoiseModel {
     /// Shot-noise variance per unit of signal.
     pub photon: f64,
     /// Signal-independent variance: read noise and quantisation.
     pub floor: f64,
+    /// Variance of each colour channel (R, G, B) relative to one raw sample at the same signal:
+    /// 1 where every pixel measures every channel (psscan's dn16 frames); less where a channel
+    /// is a mean of several CFA samples (2x2 binning averages two greens), see
+    /// `raw::Resolution::channel_variance_scale`.
+    #[serde(default = "unit_channel_scale")]
+    pub channel_scale: [f64; 3],
+    /// Set for RAW frames developed at full resolution: each pixel's R, G and B are its own CFA
+    /// sample times colour ratios that are the same in every frame, so all three carry that
+    /// one sample's noise (fully correlated). The sample at pixel `(x, y)` is of channel
+    /// `pattern[y % 2][x % 2]`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shared_cfa_sample: Option<[[u8; 2]; 2]>,
+}
+
+fn unit_channel_scale() -> [f64; 3] {
+    [1.0; 3]
 }
 
 impl NoiseModel {
@@ -27,6 +44,8 @@ impl NoiseModel {
     pub const NONE: NoiseModel = NoiseModel {
         photon: 0.0,
         floor: 0.0,
+        channel_scale: [1.0; 3],
+        shared_cfa_sample: None,
     };
 
     /// The sensor's noise in linear units: photon noise (Poisson, variance = electrons),
@@ -37,12 +56,60 @@ impl NoiseModel {
         NoiseModel {
             photon: 1.0 / (full_scale_dn * gain),
             floor: ((sensor.read_noise_e / gain).powi(2) + 1.0 / 12.0) / full_scale_dn.powi(2),
+            channel_scale: [1.0; 3],
+            shared_cfa_sample: None,
         }
     }
 
+    /// The same sensor with each channel's variance scaled (see `channel_scale`).
+    pub fn with_channel_scale(self, channel_scale: [f64; 3]) -> Self {
+        NoiseModel {
+            channel_scale,
+            ..self
+        }
+    }
+
+    /// Variance of one raw sample at `value`.
     #[inline]
     pub fn variance(&self, value: f64) -> f64 {
         self.photon * value.max(0.0) + self.floor
+    }
+
+    /// Variance of channel `c` (0 = R, 1 = G, 2 = B) at `value`.
+    #[inline]
+    pub fn channel_variance(&self, c: usize, value: f64) -> f64 {
+        self.channel_scale[c] * self.variance(value)
+    }
+
+    /// Variance of a pixel's light-normalised luminance `lum = sum_c weights[c] * raw[c] *
+    /// inv_intensity[c]`, from its channel values `raw` at pixel `(x, y)`: independent channels
+    /// add their variances; channels sharing one CFA sample `v` (`shared_cfa_sample`) are all
+    /// proportional to it, so `lum` is too and its relative variance is that of `v`.
+    #[inline]
+    pub fn luminance_variance(
+        &self,
+        raw: &[f64; 3],
+        inv_intensity: &[f64; 3],
+        weights: &[f64; 3],
+        lum: f64,
+        (x, y): (usize, usize),
+    ) -> f64 {
+        if let Some(pattern) = self.shared_cfa_sample {
+            let v = raw[pattern[y % 2][x % 2] as usize];
+            if v > 0.0 {
+                return lum * lum * self.variance(v) / (v * v);
+            }
+        }
+        (0..3)
+            .map(|c| (weights[c] * inv_intensity[c]).powi(2) * self.channel_variance(c, raw[c]))
+            .sum()
+    }
+
+    /// Signal-independent variance of the luminance (`weights` per channel).
+    pub fn luminance_floor_variance(&self, weights: &[f64; 3]) -> f64 {
+        (0..3)
+            .map(|c| weights[c] * weights[c] * self.channel_scale[c] * self.floor)
+            .sum()
     }
 }
 
@@ -141,6 +208,35 @@ mod tests {
             (measured / predicted - 1.0).abs() < 0.01,
             "measured {measured}, predicted {predicted}"
         );
+    }
+
+    #[test]
+    fn luminance_variance_of_independent_and_of_shared_channels() {
+        let rig = crate::rig::Rig::default_rig();
+        let noise = NoiseModel::from_sensor(&rig.sensor).with_channel_scale([1.0, 0.5, 1.0]);
+        let w = [0.2, 0.7, 0.1];
+        let inv = [2.0, 1.0, 1.5];
+        let raw = [0.1, 0.4, 0.2];
+        let lum: f64 = (0..3).map(|c| w[c] * inv[c] * raw[c]).sum();
+        let independent: f64 = (0..3)
+            .map(|c| (w[c] * inv[c]).powi(2) * noise.channel_scale[c] * noise.variance(raw[c]))
+            .sum();
+        assert_eq!(
+            noise.luminance_variance(&raw, &inv, &w, lum, (3, 5)),
+            independent
+        );
+        // Sharing pixel (3, 5)'s CFA sample: in GBRG that is row 1, column 1, a G sample.
+        let shared = NoiseModel {
+            shared_cfa_sample: Some([[1, 2], [0, 1]]),
+            ..noise
+        };
+        let v = raw[1];
+        let expected = lum * lum * noise.variance(v) / (v * v);
+        assert!((shared.luminance_variance(&raw, &inv, &w, lum, (3, 5)) - expected).abs() < 1e-18);
+        // Pixel (2, 5) holds the R sample.
+        let v = raw[0];
+        let expected = lum * lum * noise.variance(v) / (v * v);
+        assert!((shared.luminance_variance(&raw, &inv, &w, lum, (2, 5)) - expected).abs() < 1e-18);
     }
 
     #[test]

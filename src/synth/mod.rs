@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 
 pub use brdf::Sheen;
 pub use render::{GroundTruth, Scene, SceneOptions};
-pub use sensor::{expose, Noise};
+pub use sensor::{expose, expose_mosaic, Noise};
 pub use textile::{Textile, Weave};
 
 use crate::plane::SensorWindow;
@@ -32,6 +32,21 @@ pub struct SynthSpec {
     pub noise_seed: Option<u64>,
     /// Exposure relative to the rig's calibration exposure.
     pub exposure: f64,
+    /// How the frames are stored.
+    #[serde(default)]
+    pub encoding: FrameEncoding,
+}
+
+/// How a synthetic set stores its frames.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FrameEncoding {
+    /// 16-bit RGB PNGs of raw digital numbers: R, G and B at every pixel (an ideal camera).
+    #[default]
+    Dn16,
+    /// DNG files of a Bayer (RGGB) mosaic, 14-bit lossless: each sensor pixel records only its
+    /// own colour, and solving takes the real RAW decode path.
+    Dng,
 }
 
 impl SynthSpec {
@@ -46,6 +61,7 @@ impl SynthSpec {
             scene: SceneOptions::default(),
             noise_seed: Some(1),
             exposure: 1.0,
+            encoding: FrameEncoding::Dn16,
         }
     }
 

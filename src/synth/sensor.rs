@@ -26,32 +26,15 @@ pub enum Noise {
 /// different frames rendered with the same seed.
 pub fn expose(planes: &RgbPlanes, sensor: &Sensor, noise: Noise, stream: u64) -> DnImage {
     let (width, height) = (planes.width(), planes.height());
-    let full_scale = sensor.white_level - sensor.black_level;
-    let gain = sensor.gain_e_per_dn;
     let mut data = vec![0u16; width * height * 3];
     let channels = planes.channels();
     data.par_chunks_mut(width * 3)
         .enumerate()
         .for_each(|(y, row)| {
-            let mut rng = match noise {
-                Noise::Off => None,
-                Noise::Seeded(seed) => Some(Xoshiro256PlusPlus::seed_from_u64(splitmix(
-                    seed ^ splitmix(stream.wrapping_mul(0x1_0000_0001) ^ y as u64),
-                ))),
-            };
+            let mut rng = row_rng(noise, stream, y);
             for x in 0..width {
                 for (c, plane) in channels.iter().enumerate() {
-                    let electrons = plane.data[y * width + x] as f64 * full_scale * gain;
-                    let noisy = match rng.as_mut() {
-                        None => electrons,
-                        Some(rng) => {
-                            let sigma = (electrons.max(0.0) + sensor.read_noise_e.powi(2)).sqrt();
-                            let z: f64 = StandardNormal.sample(rng);
-                            electrons + sigma * z
-                        }
-                    };
-                    let dn = (sensor.black_level + noisy / gain).round();
-                    row[x * 3 + c] = dn.clamp(0.0, sensor.white_level) as u16;
+                    row[x * 3 + c] = to_dn(plane.data[y * width + x], sensor, rng.as_mut());
                 }
             }
         });
@@ -60,6 +43,57 @@ pub fn expose(planes: &RgbPlanes, sensor: &Sensor, noise: Noise, stream: u64) ->
         height,
         data,
     }
+}
+
+/// Exposes `planes` on a sensor behind a Bayer colour filter array: the sample at `(x, y)`
+/// records channel `pattern[y % 2][x % 2]` of that pixel, through the same noise, rounding
+/// and clipping as [`expose`]. Returns the row-major CFA samples.
+pub fn expose_mosaic(
+    planes: &RgbPlanes,
+    pattern: [[u8; 2]; 2],
+    sensor: &Sensor,
+    noise: Noise,
+    stream: u64,
+) -> Vec<u16> {
+    let (width, height) = (planes.width(), planes.height());
+    let mut data = vec![0u16; width * height];
+    let channels = planes.channels();
+    data.par_chunks_mut(width.max(1))
+        .enumerate()
+        .for_each(|(y, row)| {
+            let mut rng = row_rng(noise, stream, y);
+            for (x, sample) in row.iter_mut().enumerate() {
+                let plane = channels[pattern[y % 2][x % 2] as usize];
+                *sample = to_dn(plane.data[y * width + x], sensor, rng.as_mut());
+            }
+        });
+    data
+}
+
+fn row_rng(noise: Noise, stream: u64, y: usize) -> Option<Xoshiro256PlusPlus> {
+    match noise {
+        Noise::Off => None,
+        Noise::Seeded(seed) => Some(Xoshiro256PlusPlus::seed_from_u64(splitmix(
+            seed ^ splitmix(stream.wrapping_mul(0x1_0000_0001) ^ y as u64),
+        ))),
+    }
+}
+
+/// One linear value (1.0 = white level) as the sensor records it.
+#[inline]
+fn to_dn(value: f32, sensor: &Sensor, rng: Option<&mut Xoshiro256PlusPlus>) -> u16 {
+    let gain = sensor.gain_e_per_dn;
+    let electrons = value as f64 * (sensor.white_level - sensor.black_level) * gain;
+    let noisy = match rng {
+        None => electrons,
+        Some(rng) => {
+            let sigma = (electrons.max(0.0) + sensor.read_noise_e.powi(2)).sqrt();
+            let z: f64 = StandardNormal.sample(rng);
+            electrons + sigma * z
+        }
+    };
+    let dn = (sensor.black_level + noisy / gain).round();
+    dn.clamp(0.0, sensor.white_level) as u16
 }
 
 #[cfg(test)]

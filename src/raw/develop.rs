@@ -1,0 +1,298 @@
+//! From a frame's bytes to linear planes, whatever the frame's encoding, and the checks a set
+//! of RAW frames must pass before they are solved together: same camera, same size, same ISO,
+//! shutter and aperture.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use serde::Serialize;
+
+use rayon::prelude::*;
+
+use super::decode::{decode_raw, RawMeta};
+use super::linear::{decode_dn_image, Levels};
+use super::mosaic::{develop_stack, subtract_dark, LinearMosaic, Resolution};
+use crate::error::{Error, Result};
+use crate::plane::LightFrame;
+
+/// How frames are stored in a capture set (`image.encoding` in the manifest).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Encoding {
+    /// 16-bit RGB PNG/TIFF of raw digital numbers.
+    Dn16,
+    /// Camera RAW files.
+    Raw,
+}
+
+impl Encoding {
+    pub fn parse(name: &str) -> Option<Encoding> {
+        match name {
+            "dn16" => Some(Encoding::Dn16),
+            "raw" => Some(Encoding::Raw),
+            _ => None,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Encoding::Dn16 => "dn16",
+            Encoding::Raw => "raw",
+        }
+    }
+}
+
+/// How to develop a set's frames.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct DevelopOptions {
+    pub resolution: Resolution,
+    /// Subtract the set's all-off frame, when it has one.
+    pub subtract_dark: bool,
+}
+
+impl Default for DevelopOptions {
+    fn default() -> Self {
+        DevelopOptions {
+            resolution: Resolution::Full,
+            subtract_dark: true,
+        }
+    }
+}
+
+/// One frame, decoded and linearised, not yet developed.
+#[derive(Clone, Debug)]
+pub struct DecodedFrame {
+    pub data: FrameData,
+    /// The camera's metadata (RAW frames).
+    pub meta: Option<RawMeta>,
+    /// The levels the frame was linearised with (RAW: the mean of the CFA sites' black levels).
+    pub levels: Levels,
+    /// The CFA pattern (RAW frames), e.g. "RGGB".
+    pub cfa_pattern: Option<String>,
+    /// Size of the stored image (RAW: the mosaic).
+    pub stored_size: (usize, usize),
+}
+
+/// A decoded frame's values.
+#[derive(Clone, Debug)]
+pub enum FrameData {
+    /// R, G and B at every pixel (dn16 frames).
+    Rgb(LightFrame),
+    /// CFA samples (RAW frames).
+    Mosaic(LinearMosaic),
+}
+
+/// Decodes and linearises one frame. `dn16_levels` linearise dn16 frames; RAW frames carry
+/// their own.
+pub fn decode_frame(
+    bytes: Vec<u8>,
+    path: &Path,
+    encoding: Encoding,
+    dn16_levels: &Levels,
+) -> Result<DecodedFrame> {
+    match encoding {
+        Encoding::Dn16 => {
+            let dn = decode_dn_image(&bytes, path)?;
+            Ok(DecodedFrame {
+                data: FrameData::Rgb(dn.to_light_frame(dn16_levels)),
+                meta: None,
+                levels: *dn16_levels,
+                cfa_pattern: None,
+                stored_size: (dn.width, dn.height),
+            })
+        }
+        Encoding::Raw => {
+            let raw = decode_raw(bytes, path)?;
+            let mosaic = raw.mosaic.linearize().map_err(|e| Error::image(path, e))?;
+            Ok(DecodedFrame {
+                data: FrameData::Mosaic(mosaic),
+                levels: Levels {
+                    black: raw.mosaic.mean_black(),
+                    white: raw.mosaic.white as f64,
+                },
+                cfa_pattern: Some(raw.mosaic.pattern_name()),
+                stored_size: (raw.mosaic.width, raw.mosaic.height),
+                meta: Some(raw.meta),
+            })
+        }
+    }
+}
+
+/// Develops a set's light frames: the dark frame (when given) subtracted, RAW frames binned
+/// (half) or demosaiced as a stack (full, see `mosaic::develop_stack`; `illuminants` are the
+/// lights' raw colours, one per light frame). Half resolution exists for RAW frames only.
+pub fn develop_frames(
+    lights: Vec<DecodedFrame>,
+    dark: Option<DecodedFrame>,
+    illuminants: Option<&[[f64; 3]]>,
+    resolution: Resolution,
+) -> Result<Vec<LightFrame>> {
+    let mut rgb = Vec::new();
+    let mut mosaics = Vec::new();
+    for frame in lights {
+        match frame.data {
+            FrameData::Rgb(f) => rgb.push(f),
+            FrameData::Mosaic(m) => mosaics.push(m),
+        }
+    }
+    if !rgb.is_empty() && !mosaics.is_empty() {
+        return Err(Error::Invalid(
+            "a set mixes RGB frames and RAW frames".into(),
+        ));
+    }
+    if !rgb.is_empty() {
+        if resolution != Resolution::Full {
+            return Err(Error::Unsupported(
+                "half resolution is 2x2 CFA binning of RAW frames; this set stores dn16 RGB \
+                 frames, solve it at full resolution"
+                    .into(),
+            ));
+        }
+        if let Some(dark) = dark {
+            let FrameData::Rgb(dark) = dark.data else {
+                return Err(Error::Invalid("a RAW dark frame in a dn16 set".into()));
+            };
+            rgb.par_iter_mut()
+                .try_for_each(|f| subtract_dark(f, &dark))?;
+        }
+        return Ok(rgb);
+    }
+    if let Some(dark) = dark {
+        let FrameData::Mosaic(dark) = dark.data else {
+            return Err(Error::Invalid("an RGB dark frame in a RAW set".into()));
+        };
+        for m in &mut mosaics {
+            m.subtract(&dark)?;
+        }
+    }
+    develop_stack(mosaics, illuminants, resolution)
+}
+
+/// Checks that RAW frames were shot alike: same camera, size, ISO, shutter and aperture.
+/// `frames` pairs each file's name with its metadata; the error lists which files hold which
+/// value for every property that differs.
+pub fn check_consistent(frames: &[(String, &RawMeta)]) -> std::result::Result<(), String> {
+    type Property = (&'static str, fn(&RawMeta) -> String);
+    let properties: [Property; 5] = [
+        ("camera model", |m| m.camera()),
+        ("resolution", |m| format!("{}x{}", m.width, m.height)),
+        ("ISO", |m| m.iso.map_or("unknown".into(), |v| v.to_string())),
+        ("shutter", |m| {
+            m.shutter_s
+                .map_or("unknown".into(), |v| format!("{v:.6} s"))
+        }),
+        ("aperture", |m| {
+            m.aperture.map_or("unknown".into(), |v| format!("f/{v:.2}"))
+        }),
+    ];
+    let mut problems = Vec::new();
+    for (name, value) in properties {
+        let mut groups: BTreeMap<String, Vec<&str>> = BTreeMap::new();
+        for (file, meta) in frames {
+            groups.entry(value(meta)).or_default().push(file);
+        }
+        if groups.len() > 1 {
+            let listed: Vec<String> = groups
+                .iter()
+                .map(|(v, files)| format!("{v} in {}", files.join(", ")))
+                .collect();
+            problems.push(format!("{name} differs: {}", listed.join("; ")));
+        }
+    }
+    if problems.is_empty() {
+        Ok(())
+    } else {
+        Err(format!(
+            "the frames were not shot alike ({}); re-shoot the odd frames with the set's settings",
+            problems.join(". ")
+        ))
+    }
+}
+
+/// How the frames of a solve were decoded and prepared, for the report.
+#[derive(Clone, Debug, Serialize)]
+pub struct DecodeInfo {
+    pub encoding: String,
+    pub resolution: Resolution,
+    /// How RGB pixels were made from the stored frames.
+    pub method: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cfa_pattern: Option<String>,
+    /// Levels of the first light frame (RAW: the mean black level of its CFA sites).
+    pub levels: Levels,
+    /// The camera, from the first light frame's metadata (RAW sets).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub camera: Option<RawMeta>,
+    /// What was done with the all-off frame.
+    pub dark_frame: String,
+    pub dark_subtracted: bool,
+    /// The noise model's per-channel variance scale (see `NoiseModel::channel_scale`).
+    pub noise_channel_scale: [f64; 3],
+    /// At full resolution from RAW: every pixel's channels share its own CFA sample's noise;
+    /// this is the CFA pattern that says which sample that is (`NoiseModel::shared_cfa_sample`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub noise_shared_cfa_sample: Option<String>,
+    /// How lens distortion was handled.
+    pub undistortion: String,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn meta(model: &str, iso: u32, shutter: f64) -> RawMeta {
+        RawMeta {
+            make: "Nikon".into(),
+            model: model.into(),
+            width: 4928,
+            height: 3264,
+            iso: Some(iso),
+            shutter_s: Some(shutter),
+            aperture: Some(8.0),
+        }
+    }
+
+    #[test]
+    fn frames_shot_alike_pass_and_odd_ones_are_named() {
+        let a = meta("D5100", 100, 0.1);
+        let b = meta("D5100", 200, 0.1);
+        let c = meta("D7000", 100, 0.05);
+        let same = vec![("L00.nef".to_string(), &a), ("L01.nef".to_string(), &a)];
+        assert!(check_consistent(&same).is_ok());
+        let mixed = vec![
+            ("L00.nef".to_string(), &a),
+            ("L01.nef".to_string(), &b),
+            ("L02.nef".to_string(), &c),
+        ];
+        let err = check_consistent(&mixed).unwrap_err();
+        assert!(
+            err.contains("camera model differs")
+                && err.contains("Nikon D7000 in L02.nef")
+                && err.contains("ISO differs")
+                && err.contains("200 in L01.nef")
+                && err.contains("shutter differs")
+                && !err.contains("aperture differs"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn dn16_frames_have_no_half_resolution() {
+        let frame = DecodedFrame {
+            data: FrameData::Rgb(LightFrame {
+                rgb: crate::plane::RgbPlanes::new(2, 2),
+                saturated: None,
+            }),
+            meta: None,
+            levels: Levels {
+                black: 0.0,
+                white: 1.0,
+            },
+            cfa_pattern: None,
+            stored_size: (2, 2),
+        };
+        let err = develop_frames(vec![frame], None, None, Resolution::Half)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("dn16") && err.contains("RAW"), "{err}");
+    }
+}

@@ -1,0 +1,797 @@
+//! The colour-filter-array (Bayer) samples of one RAW frame, and the two ways psscan turns a
+//! stack of them (one frame per light) into linear RGB planes:
+//!
+//! - **Half resolution, 2x2 binning.** Each 2x2 CFA cell (one R, two G, one B sample) becomes one
+//!   pixel: R and B are the cell's own samples, G the mean of its two greens. Exact, no
+//!   interpolation, a quarter of the data. The binned pixel's centre is the cell's centre, so the
+//!   frame's [`SensorWindow`] doubles its step and moves half a sensor pixel (see
+//!   [`Resolution::window`]). R and B come from sites half a pixel off that centre (diagonally,
+//!   in opposite directions); G's two sites are symmetric about it. For a Lambertian surface the
+//!   binned pixel measures exactly a surface whose scaled normal is the luminance-weighted sum
+//!   of its four sites' scaled normals, which is the ground truth psscan compares it with.
+//! - **Full resolution, shading-preserving demosaic** ([`develop_stack`]): every pixel keeps its
+//!   own sample, and its two missing channels are that sample times the pixel's colour ratios,
+//!   which come from the whole stack (they are the same under every light). Each pixel's
+//!   shading, which is what photometric stereo reads, is therefore its own, never its
+//!   neighbours'. A plain [`bilinear`] demosaic is the building block for the colour ratios.
+//!
+//! Values are linear: `(sample - black[site]) / (white - black[site])`, 1.0 at the white level.
+//! A pixel is saturated when a CFA sample whose value it carries is at or near the white level
+//! (within [`SATURATION_MARGIN`] of full scale, where real sensors stop being linear): any of the
+//! four samples of a binned cell; the own sample at full resolution.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+use crate::plane::{LightFrame, Mask, Plane, RgbPlanes, SensorWindow};
+
+/// Colour channel indices, as in `RgbPlanes`.
+pub const RED: u8 = 0;
+pub const GREEN: u8 = 1;
+pub const BLUE: u8 = 2;
+
+/// A sample this close to the white level (as a fraction of white - black) counts as saturated.
+pub const SATURATION_MARGIN: f32 = 0.01;
+
+/// How a frame's CFA samples become RGB pixels.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Resolution {
+    /// Bilinear demosaic: one RGB pixel per CFA sample.
+    #[default]
+    Full,
+    /// 2x2 CFA binning: one RGB pixel per 2x2 cell, half the width and height.
+    Half,
+}
+
+impl Resolution {
+    /// The developed image size for a mosaic of `width x height` samples (binning drops an odd
+    /// last row or column).
+    pub fn size(self, width: usize, height: usize) -> (usize, usize) {
+        match self {
+            Resolution::Full => (width, height),
+            Resolution::Half => (width / 2, height / 2),
+        }
+    }
+
+    /// Where the developed pixels sit on the sensor, given where the mosaic's samples sit.
+    /// A binned pixel `(u, v)` is the mean of samples `2u, 2u+1` (and rows `2v, 2v+1`), whose
+    /// centre is at sample coordinate `2u + 0.5`.
+    pub fn window(self, mosaic: SensorWindow) -> SensorWindow {
+        match self {
+            Resolution::Full => mosaic,
+            Resolution::Half => SensorWindow {
+                x0: mosaic.x0 + 0.5 * mosaic.step,
+                y0: mosaic.y0 + 0.5 * mosaic.step,
+                step: 2.0 * mosaic.step,
+            },
+        }
+    }
+
+    /// Noise variance of each developed channel relative to one raw sample at the same signal.
+    /// Binning: R and B are single samples (1), G the mean of two (1/2), all independent. Full
+    /// resolution: each channel is the pixel's own sample times a colour ratio, so the three
+    /// share that sample's noise (1 each, and fully correlated: `NoiseModel::shared_cfa_sample`).
+    pub fn channel_variance_scale(self) -> [f64; 3] {
+        match self {
+            Resolution::Half => [1.0, 0.5, 1.0],
+            Resolution::Full => [1.0, 1.0, 1.0],
+        }
+    }
+
+    pub fn method(self) -> &'static str {
+        match self {
+            Resolution::Half => "2x2 CFA binning (R, mean of the two G, B of each cell)",
+            Resolution::Full => {
+                "shading-preserving demosaic: each pixel's own CFA sample, the missing channels \
+                 scaled from it by the pixel's colour ratios from the whole stack (bilinear \
+                 demosaic of the white-balanced sum of all frames)"
+            }
+        }
+    }
+}
+
+/// The CFA samples of one frame (the sensor's active area), with their levels.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mosaic {
+    pub width: usize,
+    pub height: usize,
+    /// Channel of the sample at `(x, y)`: `pattern[y % 2][x % 2]`, a Bayer pattern (one R, one
+    /// B and two G on a diagonal).
+    pub pattern: [[u8; 2]; 2],
+    /// Black level of each CFA site, indexed like `pattern`.
+    pub black: [[f32; 2]; 2],
+    pub white: f32,
+    /// Row-major samples, `width * height`.
+    pub samples: Vec<u16>,
+}
+
+impl Mosaic {
+    /// Checks the pattern is a 2x2 Bayer layout and the sizes and levels make sense.
+    pub fn validate(&self) -> Result<()> {
+        if self.samples.len() != self.width * self.height {
+            return Err(Error::Invalid(format!(
+                "mosaic of {}x{} needs {} samples, has {}",
+                self.width,
+                self.height,
+                self.width * self.height,
+                self.samples.len()
+            )));
+        }
+        if self.width < 2 || self.height < 2 {
+            return Err(Error::Invalid(format!(
+                "a {}x{} mosaic is too small to develop (at least 2x2)",
+                self.width, self.height
+            )));
+        }
+        let p = self.pattern;
+        let greens_on_a_diagonal =
+            (p[0][0] == GREEN && p[1][1] == GREEN) || (p[0][1] == GREEN && p[1][0] == GREEN);
+        let mut counts = [0; 3];
+        for c in p.iter().flatten() {
+            if let Some(n) = counts.get_mut(*c as usize) {
+                *n += 1;
+            }
+        }
+        if !greens_on_a_diagonal || counts != [1, 2, 1] {
+            return Err(Error::Unsupported(format!(
+                "CFA pattern {} is not a Bayer pattern (RGGB, BGGR, GRBG or GBRG)",
+                self.pattern_name()
+            )));
+        }
+        for b in self.black.iter().flatten() {
+            if !(b.is_finite() && *b >= 0.0 && *b < self.white) {
+                return Err(Error::Invalid(format!(
+                    "black level {b} does not lie below the white level {}",
+                    self.white
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// The pattern as the usual four letters, row by row (e.g. "RGGB").
+    pub fn pattern_name(&self) -> String {
+        self.pattern
+            .iter()
+            .flatten()
+            .map(|&c| match c {
+                RED => 'R',
+                GREEN => 'G',
+                BLUE => 'B',
+                _ => '?',
+            })
+            .collect()
+    }
+
+    /// A pattern from its four letters; `None` for anything but R, G, B.
+    pub fn parse_pattern(name: &str) -> Option<[[u8; 2]; 2]> {
+        let codes: Vec<u8> = name
+            .chars()
+            .map(|c| match c {
+                'R' => Some(RED),
+                'G' => Some(GREEN),
+                'B' => Some(BLUE),
+                _ => None,
+            })
+            .collect::<Option<_>>()?;
+        (codes.len() == 4).then(|| [[codes[0], codes[1]], [codes[2], codes[3]]])
+    }
+
+    /// The mean of the four sites' black levels.
+    pub fn mean_black(&self) -> f64 {
+        self.black.iter().flatten().map(|&b| b as f64).sum::<f64>() / 4.0
+    }
+
+    /// Samples at or above this value are saturated.
+    pub fn saturation_threshold(&self) -> f32 {
+        let darkest = self.black.iter().flatten().fold(0.0f32, |a, &b| a.max(b));
+        self.white - SATURATION_MARGIN * (self.white - darkest)
+    }
+
+    /// The samples as linear values (per-site black subtracted, 1.0 at the white level) with
+    /// their saturation flags.
+    pub fn linearize(&self) -> Result<LinearMosaic> {
+        self.validate()?;
+        let scales = self
+            .black
+            .map(|row| row.map(|b| (b, 1.0 / (self.white - b))));
+        let threshold = self.saturation_threshold();
+        let w = self.width;
+        let mut values = vec![0.0f32; self.samples.len()];
+        let mut saturated = vec![false; self.samples.len()];
+        values
+            .par_chunks_mut(w)
+            .zip(saturated.par_chunks_mut(w))
+            .zip(self.samples.par_chunks(w))
+            .enumerate()
+            .for_each(|(y, ((v, sat), row))| {
+                let site = &scales[y % 2];
+                for x in 0..w {
+                    let (offset, scale) = site[x % 2];
+                    v[x] = (row[x] as f32 - offset) * scale;
+                    sat[x] = row[x] as f32 >= threshold;
+                }
+            });
+        Ok(LinearMosaic {
+            width: self.width,
+            height: self.height,
+            pattern: self.pattern,
+            values,
+            saturated,
+        })
+    }
+
+    /// This frame developed on its own (at full resolution its colour ratios come from its own
+    /// neighbourhood; see [`develop_stack`]).
+    pub fn develop(&self, resolution: Resolution) -> Result<LightFrame> {
+        let mut frames = develop_stack(vec![self.linearize()?], None, resolution)?;
+        Ok(frames.pop().expect("one frame in, one out"))
+    }
+}
+
+/// A mosaic's samples in linear units, with their saturation flags.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LinearMosaic {
+    pub width: usize,
+    pub height: usize,
+    pub pattern: [[u8; 2]; 2],
+    pub values: Vec<f32>,
+    pub saturated: Vec<bool>,
+}
+
+impl LinearMosaic {
+    /// Channel of the sample at `(x, y)`.
+    #[inline]
+    pub fn channel(&self, x: usize, y: usize) -> usize {
+        self.pattern[y % 2][x % 2] as usize
+    }
+
+    /// Subtracts a dark frame sample by sample; a sample saturated in either is saturated.
+    pub fn subtract(&mut self, dark: &LinearMosaic) -> Result<()> {
+        if (dark.width, dark.height, dark.pattern) != (self.width, self.height, self.pattern) {
+            return Err(Error::Invalid(format!(
+                "the dark frame is a {}x{} mosaic, the light frame {}x{}",
+                dark.width, dark.height, self.width, self.height
+            )));
+        }
+        self.values
+            .par_iter_mut()
+            .zip(&dark.values)
+            .for_each(|(v, d)| *v -= d);
+        for (s, d) in self.saturated.iter_mut().zip(&dark.saturated) {
+            *s |= *d;
+        }
+        Ok(())
+    }
+
+    /// 2x2 binning: R and B of each cell, the mean of its two G.
+    fn bin2x2(&self) -> LightFrame {
+        let (w, h) = Resolution::Half.size(self.width, self.height);
+        let mut rgb = RgbPlanes::new(w, h);
+        let mut saturated = Mask::new(w, h, false);
+        let width = self.width;
+        rgb.r
+            .data
+            .par_chunks_mut(w.max(1))
+            .zip(rgb.g.data.par_chunks_mut(w.max(1)))
+            .zip(rgb.b.data.par_chunks_mut(w.max(1)))
+            .zip(saturated.data.par_chunks_mut(w.max(1)))
+            .enumerate()
+            .for_each(|(v, (((r, g), b), sat))| {
+                for u in 0..w {
+                    let mut sum = [0.0f32; 3];
+                    let mut any_saturated = false;
+                    for j in 0..2 {
+                        for i in 0..2 {
+                            let at = (2 * v + j) * width + 2 * u + i;
+                            any_saturated |= self.saturated[at];
+                            sum[self.pattern[j][i] as usize] += self.values[at];
+                        }
+                    }
+                    r[u] = sum[0];
+                    g[u] = 0.5 * sum[1];
+                    b[u] = sum[2];
+                    sat[u] = any_saturated;
+                }
+            });
+        LightFrame {
+            rgb,
+            saturated: Some(saturated),
+        }
+    }
+}
+
+/// Bilinear demosaic of `values` laid out as `pattern`: each pixel keeps its own sample for
+/// its own channel; a missing channel is the mean of the nearest samples of that channel (the
+/// two horizontal or the two vertical neighbours at a G site; the four edge neighbours for G
+/// and the four diagonal ones for R or B at an R or B site). The mosaic is mirrored about its
+/// border, which keeps the CFA phase.
+pub fn bilinear(width: usize, height: usize, pattern: [[u8; 2]; 2], values: &[f32]) -> RgbPlanes {
+    let (w, h) = (width, height);
+    let mut rgb = RgbPlanes::new(w, h);
+    let mirror = |i: isize, n: usize| -> usize {
+        if i < 0 {
+            (-i) as usize
+        } else if i as usize >= n {
+            2 * (n - 1) - i as usize
+        } else {
+            i as usize
+        }
+    };
+    rgb.r
+        .data
+        .par_chunks_mut(w)
+        .zip(rgb.g.data.par_chunks_mut(w))
+        .zip(rgb.b.data.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, ((r, g), b))| {
+            let row = |yy: usize| &values[yy * w..(yy + 1) * w];
+            let (up, mid, down) = (
+                row(mirror(y as isize - 1, h)),
+                row(y),
+                row(mirror(y as isize + 1, h)),
+            );
+            let out = [r, g, b];
+            let site_row = y % 2;
+            for x in 0..w {
+                let xm = mirror(x as isize - 1, w);
+                let xp = mirror(x as isize + 1, w);
+                let own = pattern[site_row][x % 2] as usize;
+                let horizontal = 0.5 * (mid[xm] + mid[xp]);
+                let vertical = 0.5 * (up[x] + down[x]);
+                out[own][x] = mid[x];
+                if own == GREEN as usize {
+                    let across = pattern[site_row][(x + 1) % 2] as usize;
+                    let along = pattern[(site_row + 1) % 2][x % 2] as usize;
+                    out[across][x] = horizontal;
+                    out[along][x] = vertical;
+                } else {
+                    out[GREEN as usize][x] = 0.5 * (horizontal + vertical);
+                    out[2 - own][x] = 0.25 * (up[xm] + up[xp] + down[xm] + down[xp]);
+                }
+            }
+        });
+    rgb
+}
+
+/// Develops a stack of frames of one static scene, each lit by an illuminant of colour
+/// `illuminants[k]` (the raw R, G, B response to it; `None`: all the same colour).
+///
+/// **Half resolution** bins each frame on its own (2x2 CFA binning).
+///
+/// **Full resolution** keeps each pixel's own sample and fills its two missing channels with
+/// that sample times the pixel's colour ratios, taken from the whole stack: under illuminants
+/// of known colour a pixel's R : G : B (after dividing by the illuminant's colour) is its
+/// reflectance's, the same in every frame, while its brightness (the shading) changes from
+/// frame to frame. So
+///
+/// ```text
+/// X_k,c'(p) = v_k(p) * T_c'(p) / T_c(p) * g_k,c' / g_k,c
+/// ```
+///
+/// with `v_k(p)` the own sample (channel `c`), `g_k` frame k's illuminant colour and `T` the
+/// bilinear demosaic of the stack's white-balanced sum `sum_k v_k / g_k`. Every channel of
+/// `X_k(p)` is proportional to the pixel's own shading in frame k, so photometric stereo sees
+/// each pixel's true shading (a plain demosaic mixes in the neighbours' shading, which on a
+/// textile whose normals change within a few pixels costs degrees); interpolation only enters
+/// the colour ratios, which are the same in every frame. The channels then share the own
+/// sample's noise (`NoiseModel::shared_cfa_sample`). A pixel is saturated in a frame when its
+/// own sample is. With a stack of one frame this is the classic constant-hue demosaic.
+pub fn develop_stack(
+    frames: Vec<LinearMosaic>,
+    illuminants: Option<&[[f64; 3]]>,
+    resolution: Resolution,
+) -> Result<Vec<LightFrame>> {
+    let Some(first) = frames.first() else {
+        return Ok(Vec::new());
+    };
+    let (w, h, pattern) = (first.width, first.height, first.pattern);
+    if let Some(odd) = frames
+        .iter()
+        .find(|f| (f.width, f.height, f.pattern) != (w, h, pattern))
+    {
+        return Err(Error::Invalid(format!(
+            "a stack mixes a {}x{} mosaic with a {w}x{h} one (or CFA patterns)",
+            odd.width, odd.height
+        )));
+    }
+    let colours: Vec<[f32; 3]> = match illuminants {
+        None => vec![[1.0; 3]; frames.len()],
+        Some(list) if list.len() == frames.len() => {
+            if list.iter().flatten().any(|g| !(g.is_finite() && *g > 0.0)) {
+                return Err(Error::Invalid(format!(
+                    "illuminant colours must be positive, got {list:?}"
+                )));
+            }
+            list.iter().map(|g| g.map(|v| v as f32)).collect()
+        }
+        Some(list) => {
+            return Err(Error::Invalid(format!(
+                "{} illuminant colours for {} frames",
+                list.len(),
+                frames.len()
+            )))
+        }
+    };
+    match resolution {
+        Resolution::Half => Ok(frames.iter().map(LinearMosaic::bin2x2).collect()),
+        Resolution::Full => Ok(develop_full(frames, &colours)),
+    }
+}
+
+fn develop_full(frames: Vec<LinearMosaic>, colours: &[[f32; 3]]) -> Vec<LightFrame> {
+    let first = &frames[0];
+    let (w, h, pattern) = (first.width, first.height, first.pattern);
+    // The white-balanced sum of the stack, and its colour at every pixel.
+    let mut sum = vec![0.0f32; w * h];
+    sum.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (k, frame) in frames.iter().enumerate() {
+            let values = &frame.values[y * w..(y + 1) * w];
+            let inv = colours[k].map(|g| 1.0 / g);
+            for x in 0..w {
+                row[x] += values[x] * inv[pattern[y % 2][x % 2] as usize];
+            }
+        }
+    });
+    let total = bilinear(w, h, pattern, &sum);
+    drop(sum);
+    // Below this the stack's own-channel sum is noise (a fraction of a DN per frame): the
+    // pixel is black in every frame and its colour ratios mean nothing.
+    let floor = 1e-5 * frames.len() as f32;
+    let totals = total.channels();
+    frames
+        .into_iter()
+        .zip(colours)
+        .map(|(frame, colour)| {
+            let mut rgb = RgbPlanes::new(w, h);
+            rgb.r
+                .data
+                .par_chunks_mut(w)
+                .zip(rgb.g.data.par_chunks_mut(w))
+                .zip(rgb.b.data.par_chunks_mut(w))
+                .enumerate()
+                .for_each(|(y, ((r, g), b))| {
+                    let out = [r, g, b];
+                    for x in 0..w {
+                        let i = y * w + x;
+                        let own = pattern[y % 2][x % 2] as usize;
+                        let v = frame.values[i];
+                        let own_total = totals[own].data[i];
+                        for c in 0..3 {
+                            out[c][x] = if c == own {
+                                v
+                            } else if own_total > floor {
+                                v * totals[c].data[i] / own_total * colour[c] / colour[own]
+                            } else {
+                                0.0
+                            };
+                        }
+                    }
+                });
+            LightFrame {
+                rgb,
+                saturated: Some(Mask {
+                    width: w,
+                    height: h,
+                    data: frame.saturated,
+                }),
+            }
+        })
+        .collect()
+}
+
+/// Subtracts a dark frame (developed the same way) from a light frame, pixel by pixel. A pixel
+/// saturated in either frame is saturated in the result.
+pub fn subtract_dark(frame: &mut LightFrame, dark: &LightFrame) -> Result<()> {
+    let (w, h) = (frame.rgb.width(), frame.rgb.height());
+    if dark.rgb.width() != w || dark.rgb.height() != h {
+        return Err(Error::Invalid(format!(
+            "the dark frame is {}x{}, the light frame {w}x{h}",
+            dark.rgb.width(),
+            dark.rgb.height()
+        )));
+    }
+    let subtract = |plane: &mut Plane, dark: &Plane| {
+        plane
+            .data
+            .par_iter_mut()
+            .zip(&dark.data)
+            .for_each(|(v, d)| *v -= d);
+    };
+    subtract(&mut frame.rgb.r, &dark.rgb.r);
+    subtract(&mut frame.rgb.g, &dark.rgb.g);
+    subtract(&mut frame.rgb.b, &dark.rgb.b);
+    if let Some(dark_sat) = &dark.saturated {
+        let mask = frame
+            .saturated
+            .get_or_insert_with(|| Mask::new(w, h, false));
+        for (m, d) in mask.data.iter_mut().zip(&dark_sat.data) {
+            *m |= *d;
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A mosaic whose sample at (x, y) encodes its position, so tests can tell which samples
+    /// went where.
+    fn mosaic(width: usize, height: usize, pattern: &str) -> Mosaic {
+        Mosaic {
+            width,
+            height,
+            pattern: Mosaic::parse_pattern(pattern).unwrap(),
+            black: [[100.0, 100.0], [100.0, 100.0]],
+            white: 10100.0,
+            samples: (0..width * height)
+                .map(|i| 100 + (i % width) as u16 * 10 + (i / width) as u16 * 1000)
+                .collect(),
+        }
+    }
+
+    fn linear(m: &Mosaic, x: usize, y: usize) -> f32 {
+        (m.samples[y * m.width + x] as f32 - 100.0) / 10000.0
+    }
+
+    #[test]
+    fn binning_takes_each_channel_from_its_own_sites() {
+        for pattern in ["RGGB", "BGGR", "GRBG", "GBRG"] {
+            let m = mosaic(6, 4, pattern);
+            let f = m.develop(Resolution::Half).unwrap();
+            assert_eq!((f.rgb.width(), f.rgb.height()), (3, 2));
+            let p = m.pattern;
+            for v in 0..2 {
+                for u in 0..3 {
+                    let mut expected = [0.0f32; 3];
+                    for j in 0..2 {
+                        for i in 0..2 {
+                            let c = p[j][i] as usize;
+                            let weight = if c == 1 { 0.5 } else { 1.0 };
+                            expected[c] += weight * linear(&m, 2 * u + i, 2 * v + j);
+                        }
+                    }
+                    let got = [f.rgb.r.get(u, v), f.rgb.g.get(u, v), f.rgb.b.get(u, v)];
+                    for c in 0..3 {
+                        assert!((got[c] - expected[c]).abs() < 1e-6, "{pattern} {u},{v}");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn half_resolution_window_centres_the_cell() {
+        let full = SensorWindow {
+            x0: 100.0,
+            y0: 50.0,
+            step: 1.0,
+        };
+        let half = Resolution::Half.window(full);
+        // Binned pixel (3, 2) averages samples x = 6, 7 and y = 4, 5: centre (106.5, 54.5).
+        assert_eq!(half.to_sensor(3.0, 2.0), (106.5, 54.5));
+        assert_eq!(Resolution::Full.window(full), full);
+    }
+
+    #[test]
+    fn bilinear_demosaic_reproduces_a_linear_ramp_away_from_the_border() {
+        // A ramp is reproduced exactly by linear interpolation, whatever the CFA phase.
+        for pattern in ["RGGB", "BGGR", "GRBG", "GBRG"] {
+            let m = mosaic(8, 6, pattern);
+            let f = m.develop(Resolution::Full).unwrap();
+            for y in 1..5 {
+                for x in 1..7 {
+                    let expected = linear(&m, x, y);
+                    for plane in f.rgb.channels() {
+                        assert!(
+                            (plane.get(x, y) - expected).abs() < 1e-6,
+                            "{pattern} ({x},{y}): {} vs {expected}",
+                            plane.get(x, y)
+                        );
+                    }
+                }
+            }
+            // Own channel is the own sample everywhere, border included.
+            for y in 0..6 {
+                for x in 0..8 {
+                    let own = m.pattern[y % 2][x % 2] as usize;
+                    assert!((f.rgb.channels()[own].get(x, y) - linear(&m, x, y)).abs() < 1e-6);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn saturation_marks_the_pixels_that_carry_a_saturated_sample() {
+        let mut m = mosaic(8, 6, "RGGB");
+        m.samples[2 * 8 + 3] = 10100; // at the white level
+        m.samples[5 * 8 + 7] = (10100.0 - 0.5 * SATURATION_MARGIN * 10000.0) as u16; // near it
+        let half = m.develop(Resolution::Half).unwrap().saturated.unwrap();
+        let flagged: Vec<usize> = (0..half.data.len()).filter(|&i| half.data[i]).collect();
+        // Binned cells (1, 1) and (3, 2).
+        assert_eq!(flagged, vec![4 + 1, 2 * 4 + 3]);
+        // At full resolution a pixel carries its own sample only (its other channels are that
+        // sample scaled by colour ratios).
+        let full = m.develop(Resolution::Full).unwrap().saturated.unwrap();
+        let flagged: Vec<usize> = (0..full.data.len()).filter(|&i| full.data[i]).collect();
+        assert_eq!(flagged, vec![2 * 8 + 3, 5 * 8 + 7]);
+    }
+
+    /// A stack of frames of a scene of smooth colour whose shading changes from pixel to pixel
+    /// and from frame to frame (what a textile under ten LEDs is), under illuminants of
+    /// different colours.
+    /// Frames, their illuminant colours, and each frame's true RGB per pixel.
+    type Stack = (Vec<LinearMosaic>, Vec<[f64; 3]>, Vec<Vec<[f32; 3]>>);
+
+    fn shaded_stack(w: usize, h: usize) -> Stack {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(5);
+        let pattern = Mosaic::parse_pattern("GBRG").unwrap();
+        let illuminants = vec![[0.55, 1.0, 0.72], [0.6, 1.0, 0.7], [0.5, 0.9, 0.8]];
+        let mut frames = Vec::new();
+        let mut truth = Vec::new();
+        let mut previous: Vec<f32> = Vec::new();
+        for (k, g) in illuminants.iter().enumerate() {
+            let mut values = Vec::new();
+            let mut rgb = Vec::new();
+            for i in 0..w * h {
+                let (x, y) = (i % w, i / w);
+                // Colour varies slowly (linear ramps), shading wildly.
+                let albedo = [
+                    0.2 + 0.002 * x as f32,
+                    0.5 - 0.001 * y as f32,
+                    0.3 + 0.001 * (x + y) as f32,
+                ];
+                // Per-pixel shading that changes from frame to frame but whose sum over the
+                // stack is the same everywhere (so the stack's colour is exact to test against).
+                let t: f32 = if k == 0 {
+                    rng.gen_range(0.05..0.95)
+                } else {
+                    0.0
+                };
+                let shading = match k {
+                    0 => t,
+                    1 => 1.0 - previous[i],
+                    _ => 0.5,
+                };
+                if k == 0 {
+                    previous.push(t);
+                }
+                let px: [f32; 3] = std::array::from_fn(|c| albedo[c] * g[c] as f32 * shading);
+                values.push(px[pattern[y % 2][x % 2] as usize]);
+                rgb.push(px);
+            }
+            frames.push(LinearMosaic {
+                width: w,
+                height: h,
+                pattern,
+                saturated: vec![false; values.len()],
+                values,
+            });
+            truth.push(rgb);
+        }
+        (frames, illuminants, truth)
+    }
+
+    #[test]
+    fn the_stack_demosaic_keeps_every_pixels_own_shading() {
+        let (w, h) = (40, 30);
+        let (frames, illuminants, truth) = shaded_stack(w, h);
+        let developed =
+            develop_stack(frames.clone(), Some(&illuminants), Resolution::Full).unwrap();
+        for (k, frame) in developed.iter().enumerate() {
+            for y in 1..h - 1 {
+                for x in 1..w - 1 {
+                    let i = y * w + x;
+                    for (c, plane) in frame.rgb.channels().iter().enumerate() {
+                        let t = truth[k][i][c];
+                        // Only the slow colour ramps are interpolated; the shading is exact.
+                        assert!(
+                            (plane.data[i] - t).abs() <= 2e-3 * t,
+                            "frame {k} ({x},{y}) channel {c}: {} vs {t}",
+                            plane.data[i]
+                        );
+                    }
+                }
+            }
+        }
+        // Whatever the shading, every channel of a pixel is its own sample times a ratio that
+        // is the same in every frame (after the illuminant's colour): what photometric stereo
+        // needs from the pixel is its own.
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(9);
+        let mut shuffled = frames.clone();
+        for f in &mut shuffled {
+            for v in &mut f.values {
+                *v *= rng.gen_range(0.1f32..1.0);
+            }
+        }
+        let developed =
+            develop_stack(shuffled.clone(), Some(&illuminants), Resolution::Full).unwrap();
+        for i in (0..w * h).step_by(7) {
+            let (x, y) = (i % w, i / w);
+            let own = shuffled[0].channel(x, y);
+            for c in 0..3 {
+                let ratio = |k: usize| {
+                    developed[k].rgb.channels()[c].data[i] / shuffled[k].values[i]
+                        * (illuminants[k][own] / illuminants[k][c]) as f32
+                };
+                for k in 1..3 {
+                    assert!((ratio(k) / ratio(0) - 1.0).abs() < 1e-5, "({x},{y}) c {c}");
+                }
+            }
+        }
+        // A plain bilinear demosaic of the same frames mixes the neighbours' shading in.
+        let plain = bilinear(w, h, frames[0].pattern, &frames[0].values);
+        let worst = (0..w * h)
+            .filter(|i| (1..h - 1).contains(&(i / w)) && (1..w - 1).contains(&(i % w)))
+            .map(|i| {
+                (0..3)
+                    .map(|c| (plain.channels()[c].data[i] / truth[0][i][c] - 1.0).abs())
+                    .fold(0.0f32, f32::max)
+            })
+            .fold(0.0f32, f32::max);
+        assert!(worst > 0.5, "bilinear's worst relative error {worst}");
+    }
+
+    #[test]
+    fn binning_noise_scale_matches_a_simulation() {
+        // White noise of unit variance through binning: R and B keep it, G halves it.
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(3);
+        let (w, h) = (256, 256);
+        let m = Mosaic {
+            width: w,
+            height: h,
+            pattern: Mosaic::parse_pattern("GRBG").unwrap(),
+            black: [[0.0; 2]; 2],
+            white: 60000.0,
+            samples: (0..w * h).map(|_| rng.gen_range(0..=2000u16)).collect(),
+        };
+        // Uniform on 0..=2000: variance (2001^2 - 1) / 12 DN^2.
+        let sample_var = (2001.0f64 * 2001.0 - 1.0) / 12.0 / 60000f64.powi(2);
+        let f = m.develop(Resolution::Half).unwrap();
+        let scale = Resolution::Half.channel_variance_scale();
+        for (c, plane) in f.rgb.channels().iter().enumerate() {
+            let n = plane.len() as f64;
+            let mean = plane.data.iter().map(|&v| v as f64).sum::<f64>() / n;
+            let var = plane
+                .data
+                .iter()
+                .map(|&v| (v as f64 - mean).powi(2))
+                .sum::<f64>()
+                / (n - 1.0);
+            let ratio = var / sample_var / scale[c];
+            // 16k pixels: the sample variance is within a few percent.
+            assert!((ratio - 1.0).abs() < 0.05, "channel {c}: {ratio}");
+        }
+    }
+
+    #[test]
+    fn non_bayer_patterns_are_refused() {
+        let mut m = mosaic(4, 4, "RGGB");
+        m.pattern = Mosaic::parse_pattern("RGBG").unwrap();
+        let err = m.develop(Resolution::Half).unwrap_err().to_string();
+        assert!(err.contains("RGBG") && err.contains("Bayer"), "{err}");
+    }
+
+    #[test]
+    fn dark_subtraction_is_per_pixel_and_keeps_saturation() {
+        let m = mosaic(4, 4, "RGGB");
+        let mut frame = m.develop(Resolution::Half).unwrap();
+        let mut dark = m.develop(Resolution::Half).unwrap();
+        dark.saturated.as_mut().unwrap().data[3] = true;
+        let before = frame.rgb.g.data[1];
+        dark.rgb.g.data[1] = 0.25 * before;
+        subtract_dark(&mut frame, &dark).unwrap();
+        assert!((frame.rgb.g.data[1] - 0.75 * before).abs() < 1e-7);
+        assert_eq!(frame.rgb.r.data[0], 0.0);
+        assert_eq!(
+            frame.saturated.unwrap().data,
+            vec![false, false, false, true]
+        );
+    }
+}
