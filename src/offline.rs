@@ -144,6 +144,7 @@ pub fn solve_diligent_set(
         cfa_pattern: None,
         levels: diligent::LEVELS,
         camera: None,
+        camera_to_srgb: None,
         dark_frame: "none in the set".into(),
         dark_subtracted: false,
         noise_channel_scale: [1.0; 3],

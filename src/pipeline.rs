@@ -347,7 +347,11 @@ pub fn solve_capture_set(
     drop(frames);
 
     let start = Instant::now();
-    let outputs = maps::write_maps(&result, stage.path(), &job.maps)?;
+    let map_options = MapOptions {
+        display_matrix: job.maps.display_matrix.or(decode.camera_to_srgb),
+        ..job.maps.clone()
+    };
+    let outputs = maps::write_maps(&result, stage.path(), &map_options)?;
     timings.insert("write".into(), start.elapsed().as_secs_f64());
 
     let outputs = relocate(outputs, out);

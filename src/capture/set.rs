@@ -347,6 +347,7 @@ impl CaptureSet {
             cfa_pattern: first.cfa_pattern.clone(),
             levels: first.levels,
             camera: first.meta.clone(),
+            camera_to_srgb: first.camera_to_srgb,
             dark_frame: match (dark, subtracted) {
                 (Some(d), Some(_)) => format!(
                     "{} subtracted sample by sample (its noise is counted: the noise model's \

@@ -224,6 +224,8 @@ impl SolveFlags {
                 },
                 png: !self.no_png,
                 exr: !self.no_exr,
+                // Set from the frames' own colour matrix when they are camera RAW files.
+                display_matrix: None,
             },
             rig: None,
             force: false,

@@ -75,14 +75,33 @@ pub fn normal_rgb16(result: &SolveResult, convention: NormalConvention) -> Vec<u
     interleave(&planes, unit_to_u16)
 }
 
-/// Interleaved 16-bit sRGB of the albedo; unsolved pixels are black.
-pub fn albedo_rgb16(result: &SolveResult) -> Vec<u16> {
-    let mut out = interleave(&result.albedo, |v| {
-        (linear_to_srgb(v) * 65535.0).round() as u16
-    });
+/// Interleaved 16-bit sRGB of the albedo, through `camera_to_srgb` when the camera's
+/// primaries are not sRGB's; unsolved pixels are black.
+pub fn albedo_rgb16(result: &SolveResult, camera_to_srgb: Option<&[[f64; 3]; 3]>) -> Vec<u16> {
+    let converted;
+    let albedo = match camera_to_srgb {
+        Some(m) => {
+            converted = to_display(&result.albedo, m);
+            &converted
+        }
+        None => &result.albedo,
+    };
+    let mut out = interleave(albedo, |v| (linear_to_srgb(v) * 65535.0).round() as u16);
     for (i, s) in result.status.iter().enumerate() {
         if *s != PixelStatus::Solved {
             out[i * 3..i * 3 + 3].fill(0);
+        }
+    }
+    out
+}
+
+/// The three planes through a 3x3 colour matrix (rows: output channels).
+fn to_display(rgb: &[Plane; 3], m: &[[f64; 3]; 3]) -> [Plane; 3] {
+    let mut out = [rgb[0].clone(), rgb[1].clone(), rgb[2].clone()];
+    for i in 0..rgb[0].len() {
+        let v = [rgb[0].data[i], rgb[1].data[i], rgb[2].data[i]].map(f64::from);
+        for (c, plane) in out.iter_mut().enumerate() {
+            plane.data[i] = (m[c][0] * v[0] + m[c][1] * v[1] + m[c][2] * v[2]) as f32;
         }
     }
     out

@@ -24,6 +24,9 @@ pub struct MapOptions {
     pub normal_convention: NormalConvention,
     pub png: bool,
     pub exr: bool,
+    /// Camera RGB to linear sRGB for the display output (`albedo.png`); the solve's data
+    /// outputs (EXR) stay in the camera's white-balanced RGB. `None`: the channels are sRGB's.
+    pub display_matrix: Option<[[f64; 3]; 3]>,
 }
 
 impl Default for MapOptions {
@@ -32,6 +35,7 @@ impl Default for MapOptions {
             normal_convention: NormalConvention::OpenGl,
             png: true,
             exr: true,
+            display_matrix: None,
         }
     }
 }
@@ -84,7 +88,12 @@ pub fn write_maps(result: &SolveResult, dir: &Path, options: &MapOptions) -> Res
             return Ok(None);
         }
         let p = path("albedo.png");
-        write::write_png16(&p, w, h, encode::albedo_rgb16(result))?;
+        write::write_png16(
+            &p,
+            w,
+            h,
+            encode::albedo_rgb16(result, options.display_matrix.as_ref()),
+        )?;
         Ok(Some(p))
     };
     let exrs = || -> Result<(Option<PathBuf>, Option<PathBuf>, PathBuf)> {

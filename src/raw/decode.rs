@@ -11,6 +11,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use rawler::decoders::{RawDecodeParams, WellKnownIFD};
+use rawler::imgop::xyz::Illuminant;
 use rawler::rawimage::RawPhotometricInterpretation;
 use rawler::rawsource::RawSource;
 use rawler::tags::TiffCommonTag;
@@ -57,6 +58,9 @@ impl RawMeta {
 pub struct DecodedRaw {
     pub mosaic: Mosaic,
     pub meta: RawMeta,
+    /// White-balanced camera RGB to linear sRGB, from the file's colour matrix (D65 or
+    /// daylight preferred), when it has a usable one.
+    pub camera_to_srgb: Option<[[f64; 3]; 3]>,
 }
 
 thread_local! {
@@ -237,7 +241,21 @@ fn to_mosaic(image: RawImage, mut meta: RawMeta) -> std::result::Result<DecodedR
         samples,
     };
     mosaic.validate().map_err(|e| e.to_string())?;
-    Ok(DecodedRaw { mosaic, meta })
+    let camera_to_srgb = image
+        .color_matrix_find_first([Illuminant::D65, Illuminant::Daylight, Illuminant::D50])
+        .or_else(|| {
+            image
+                .color_matrix
+                .iter()
+                .next()
+                .map(|(i, m)| (*i, m.clone()))
+        })
+        .and_then(|(_, matrix)| super::colour::camera_to_srgb(&matrix));
+    Ok(DecodedRaw {
+        mosaic,
+        meta,
+        camera_to_srgb,
+    })
 }
 
 /// The black level of each of the four CFA sites of the active area. rawler's black-level
@@ -313,6 +331,13 @@ mod tests {
         let min = *m.samples.iter().min().unwrap() as f32;
         let max = *m.samples.iter().max().unwrap() as f32;
         assert!(min > 2056.0 - 200.0 && max > 4000.0, "{min}..{max}");
+        // Its colour matrix gives display colour: white stays white, and the 550D's primaries
+        // are not sRGB's, so the conversion mixes channels.
+        let to_srgb = raw.camera_to_srgb.expect("the DNG carries a colour matrix");
+        for row in to_srgb {
+            assert!((row.iter().sum::<f64>() - 1.0).abs() < 1e-9, "{to_srgb:?}");
+        }
+        assert!(to_srgb[0][0] > 1.1 && to_srgb[0][1] < -0.05, "{to_srgb:?}");
 
         let half = m.develop(Resolution::Half).unwrap();
         assert_eq!((half.rgb.width(), half.rgb.height()), (867, 578));

@@ -70,6 +70,8 @@ pub struct DecodedFrame {
     pub cfa_pattern: Option<String>,
     /// Size of the stored image (RAW: the mosaic).
     pub stored_size: (usize, usize),
+    /// White-balanced camera RGB to linear sRGB (RAW frames with a colour matrix).
+    pub camera_to_srgb: Option<[[f64; 3]; 3]>,
 }
 
 /// A decoded frame's values.
@@ -98,6 +100,7 @@ pub fn decode_frame(
                 levels: *dn16_levels,
                 cfa_pattern: None,
                 stored_size: (dn.width, dn.height),
+                camera_to_srgb: None,
             })
         }
         Encoding::Raw => {
@@ -112,6 +115,7 @@ pub fn decode_frame(
                 cfa_pattern: Some(raw.mosaic.pattern_name()),
                 stored_size: (raw.mosaic.width, raw.mosaic.height),
                 meta: Some(raw.meta),
+                camera_to_srgb: raw.camera_to_srgb,
             })
         }
     }
@@ -233,6 +237,11 @@ pub struct DecodeInfo {
     pub noise_shared_cfa_sample: Option<String>,
     /// How lens distortion was handled.
     pub undistortion: String,
+    /// The camera's colour matrix as applied to display outputs (`albedo.png`): white-balanced
+    /// camera RGB to linear sRGB, from the first light frame; absent when the frames carry
+    /// none (dn16 sets, whose channels are taken as sRGB's).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub camera_to_srgb: Option<[[f64; 3]; 3]>,
 }
 
 #[cfg(test)]
@@ -288,6 +297,7 @@ mod tests {
                 white: 1.0,
             },
             cfa_pattern: None,
+            camera_to_srgb: None,
             stored_size: (2, 2),
         };
         let err = develop_frames(vec![frame], None, None, Resolution::Half)

@@ -195,6 +195,14 @@ mod tests {
                     ..meta()
                 };
                 assert_eq!(back.meta, expected);
+                // The synthetic camera's primaries are sRGB's: display colour is the data (to
+                // the DNG's storage of the matrix as rationals over 10000: a few 1e-4).
+                let to_srgb = back.camera_to_srgb.unwrap();
+                for (r, row) in to_srgb.iter().enumerate() {
+                    for (c, v) in row.iter().enumerate() {
+                        assert!((v - (r == c) as u8 as f64).abs() < 5e-4, "{to_srgb:?}");
+                    }
+                }
             }
         }
     }

@@ -8,6 +8,7 @@
 //! digital numbers of psscan's `dn16` sets ([`DnImage`]). psscan writes DNG too ([`encode_dng`]),
 //! so synthetic capture sets take the path real RAW files take.
 
+mod colour;
 mod decode;
 mod develop;
 mod dng;
@@ -15,6 +16,7 @@ mod guard;
 mod linear;
 mod mosaic;
 
+pub use colour::camera_to_srgb;
 pub use decode::{decode_raw, quiet_decoder_panics, read_raw, DecodedRaw, RawMeta, MAX_SAMPLES};
 pub use develop::{
     check_consistent, decode_frame, develop_frames, DecodeInfo, DecodedFrame, DevelopOptions,
