@@ -5,4 +5,6 @@
 
 pub mod camera;
 pub mod cv;
+pub mod lights;
 pub mod table;
+pub mod whitesheet;

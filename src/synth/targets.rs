@@ -9,8 +9,9 @@ use rand_distr::{Distribution, StandardNormal};
 use rand_xoshiro::Xoshiro256PlusPlus;
 use rayon::prelude::*;
 
+use super::sensor::{expose, Noise};
 use crate::calibration::camera::Board;
-use crate::plane::{GrayImage, RgbPlanes, SensorWindow};
+use crate::plane::{Frames, GrayImage, LightFrame, RgbPlanes, SensorWindow};
 use crate::rig::{Camera, Rig};
 
 /// A printed chessboard: the calibration's [`Board`] plus a white border of `border_squares`
@@ -518,6 +519,88 @@ pub fn as_built(hand: &Rig, led_error_m: f64, seed: u64) -> Rig {
         led.power *= rng.gen_range(0.9..1.1);
     }
     rig
+}
+
+/// The white sheet (reflectance `reflectance`, fibre texture of relative amplitude
+/// `texture`) on the table under each LED of `rig`, photographed `exposures` times through the
+/// sensor (noise seeded) and averaged, as linear frames of the whole sensor binned by `step`.
+pub fn white_sheet_frames(
+    rig: &Rig,
+    step: f64,
+    reflectance: f64,
+    texture: f64,
+    exposures: usize,
+    seed: u64,
+) -> Frames {
+    let (w, h) = binned_size(rig, step);
+    let window = SensorWindow::centred(
+        rig.camera.width as usize,
+        rig.camera.height as usize,
+        w,
+        h,
+        step,
+    );
+    let sheet = white_sheet(reflectance, texture, seed);
+    flat_target_frames(rig, window, (w, h), &sheet, exposures, seed)
+}
+
+/// Any flat target on the table under each LED, exposed `exposures` times and averaged.
+pub fn flat_target_frames(
+    rig: &Rig,
+    window: SensorWindow,
+    (w, h): (usize, usize),
+    reflectance: &(dyn Fn(f64, f64) -> [f64; 3] + Sync),
+    exposures: usize,
+    seed: u64,
+) -> Frames {
+    let levels = crate::raw::Levels::from_sensor(&rig.sensor);
+    let lights = (0..rig.leds.len())
+        .map(|k| {
+            let linear = render_flat_target(rig, window, w, h, k, 1.0, reflectance);
+            let mut sum: Option<LightFrame> = None;
+            for e in 0..exposures.max(1) {
+                let stream = (k as u64 + 1) * 1000 + e as u64;
+                let frame = expose(&linear, &rig.sensor, Noise::Seeded(seed ^ 0x5eed), stream)
+                    .to_light_frame(&levels);
+                sum = Some(match sum {
+                    None => frame,
+                    Some(mut acc) => {
+                        for (a, b) in [
+                            (&mut acc.rgb.r, &frame.rgb.r),
+                            (&mut acc.rgb.g, &frame.rgb.g),
+                            (&mut acc.rgb.b, &frame.rgb.b),
+                        ] {
+                            for (x, y) in a.data.iter_mut().zip(&b.data) {
+                                *x += y;
+                            }
+                        }
+                        if let (Some(m), Some(o)) =
+                            (acc.saturated.as_mut(), frame.saturated.as_ref())
+                        {
+                            for (x, y) in m.data.iter_mut().zip(&o.data) {
+                                *x |= *y;
+                            }
+                        }
+                        acc
+                    }
+                });
+            }
+            let mut frame = sum.expect("at least one exposure");
+            let n = exposures.max(1) as f32;
+            for plane in [&mut frame.rgb.r, &mut frame.rgb.g, &mut frame.rgb.b] {
+                for v in plane.data.iter_mut() {
+                    *v /= n;
+                }
+            }
+            frame
+        })
+        .collect();
+    Frames {
+        width: w,
+        height: h,
+        window,
+        lights,
+    }
 }
 
 #[cfg(test)]
