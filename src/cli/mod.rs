@@ -14,7 +14,7 @@ use psscan::offline::{self, BatchOptions, BatchSummary};
 use psscan::pipeline::{self, DemoSummary, SolveJob};
 use psscan::raw::{DevelopOptions, Resolution};
 use psscan::rig::Rig;
-use psscan::solve::{LightModel, Method, SolveOptions};
+use psscan::solve::{Estimator, LightModel, Method, RobustOptions, SheenModel, SolveOptions};
 use psscan::synth::{FrameEncoding, Sheen, SynthSpec};
 
 use progress::Bars;
@@ -159,6 +159,15 @@ struct SolveArgs {
 
 #[derive(Args, Clone)]
 struct SolveFlags {
+    /// Per-pixel estimator: ls (least squares), robust (reject shadowed and highlighted
+    /// lights everywhere), adaptive (least squares, robust only where the residual fails a
+    /// chi-square test against the sensor noise).
+    #[arg(long, value_enum, default_value_t = Estimator::Adaptive)]
+    estimator: Estimator,
+    /// Fit the velvet sheen lobe of seed 004 (eqs. 21-23) where the Lambertian model fails;
+    /// the lobe's shape: f0 (Fresnel at normal incidence), alpha (width), amplitude.
+    #[arg(long, num_args = 3, value_names = ["F0", "ALPHA", "AMPLITUDE"])]
+    sheen_fit: Option<Vec<f64>>,
     /// Least-squares method.
     #[arg(long, value_enum, default_value_t = MethodArg::Fast)]
     method: MethodArg,
@@ -213,6 +222,15 @@ impl SolveFlags {
                 light_model: match self.light_model {
                     LightModelArg::Near => LightModel::Near,
                     LightModelArg::Distant => LightModel::Distant,
+                },
+                estimator: self.estimator,
+                robust: RobustOptions {
+                    sheen: self.sheen_fit.as_deref().map(|v| SheenModel {
+                        f0: [v[0]; 3],
+                        alpha: v[1],
+                        amplitude: v[2],
+                    }),
+                    ..RobustOptions::default()
                 },
                 ..SolveOptions::default()
             },

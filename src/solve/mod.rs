@@ -8,9 +8,12 @@
 //! shadow reads zero whatever the normal, so it would only bias the fit). Pixels left with
 //! fewer than three lights, or with lights too close to coplanar, are flagged, never NaN.
 
+mod adaptive;
 mod kernel;
 mod lights;
 mod predict;
+mod robust;
+mod sheen;
 
 use nalgebra::Vector3;
 use rayon::prelude::*;
@@ -21,6 +24,8 @@ use crate::progress::Progress;
 
 pub use lights::{Illumination, LightModel, LightSource};
 pub use predict::{elliptic_e, expected_angle_error, NoiseModel};
+pub use robust::RobustOptions;
+pub use sheen::SheenModel;
 
 /// Rec. 709 luminance weights: the grayscale the normal is solved from (seed eq. 26).
 pub const LUMINANCE_WEIGHTS: [f64; 3] = [0.2126, 0.7152, 0.0722];
@@ -38,10 +43,86 @@ pub enum Method {
     Svd,
 }
 
+/// Which estimator solves each pixel.
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+    Default,
+)]
+pub enum Estimator {
+    /// Plain least squares over every usable light (dark, saturated and non-finite
+    /// measurements are always left out).
+    #[serde(rename = "ls")]
+    #[value(name = "ls")]
+    LeastSquares,
+    /// The robust fit (outlier rejection, then the sheen model where configured) at every
+    /// pixel. See `robust`.
+    #[serde(rename = "robust")]
+    #[value(name = "robust")]
+    Robust,
+    /// Least squares everywhere; the robust fit only where the least-squares residual fails a
+    /// chi-square test against the noise model. See `adaptive`.
+    #[default]
+    #[serde(rename = "adaptive")]
+    #[value(name = "adaptive")]
+    Adaptive,
+}
+
+impl Estimator {
+    pub const ALL: [Estimator; 3] = [
+        Estimator::LeastSquares,
+        Estimator::Robust,
+        Estimator::Adaptive,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Estimator::LeastSquares => "ls",
+            Estimator::Robust => "robust",
+            Estimator::Adaptive => "adaptive",
+        }
+    }
+}
+
+/// Which fit produced a pixel's solution (the confidence map's `fit` channel).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, Default)]
+#[serde(rename_all = "snake_case")]
+#[repr(u8)]
+pub enum PixelFit {
+    /// Not solved, or least squares over every usable light.
+    #[default]
+    LeastSquares = 0,
+    /// Least squares after rejecting outlying lights (shadows, highlights).
+    Robust = 1,
+    /// The sheen model fitted with the normal (seed eqs. 21-23).
+    Sheen = 2,
+}
+
+impl PixelFit {
+    pub const ALL: [PixelFit; 3] = [PixelFit::LeastSquares, PixelFit::Robust, PixelFit::Sheen];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            PixelFit::LeastSquares => "least_squares",
+            PixelFit::Robust => "robust",
+            PixelFit::Sheen => "sheen",
+        }
+    }
+}
+
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct SolveOptions {
     pub light_model: LightModel,
     pub method: Method,
+    pub estimator: Estimator,
+    /// Tuning of the robust fit (used by `Estimator::Robust` and `Estimator::Adaptive`).
+    pub robust: RobustOptions,
     /// A measurement whose luminance is at or below this many standard deviations of the
     /// sensor's noise floor counts as dark (shadowed) and is left out.
     pub dark_threshold_sigma: f64,
@@ -56,6 +137,8 @@ impl Default for SolveOptions {
         SolveOptions {
             light_model: LightModel::Near,
             method: Method::NormalEquations,
+            estimator: Estimator::default(),
+            robust: RobustOptions::default(),
             dark_threshold_sigma: 3.0,
             max_condition: 1e3,
             predict_error: true,
@@ -134,6 +217,11 @@ pub struct SolveResult {
     pub condition: Plane,
     pub lights_used: Vec<u8>,
     pub status: Vec<PixelStatus>,
+    /// Which fit solved each pixel; `LeastSquares` where not solved.
+    pub fit: Vec<PixelFit>,
+    /// Pixels whose least-squares fit failed the chi-square test and were refitted (adaptive
+    /// estimator), or that the robust estimator changed.
+    pub escalated: usize,
 }
 
 impl SolveResult {
@@ -149,7 +237,18 @@ impl SolveResult {
             condition: plane(0.0),
             lights_used: vec![0; width * height],
             status: vec![PixelStatus::OutsideMask; width * height],
+            fit: vec![PixelFit::LeastSquares; width * height],
+            escalated: 0,
         }
+    }
+
+    /// Solved pixels per fit.
+    pub fn count_fit(&self, fit: PixelFit) -> usize {
+        self.status
+            .iter()
+            .zip(&self.fit)
+            .filter(|(s, f)| **s == PixelStatus::Solved && **f == fit)
+            .count()
     }
 
     pub fn count(&self, status: PixelStatus) -> usize {
@@ -203,6 +302,7 @@ pub fn solve(
 
     let mut result = SolveResult::new(width, height);
     progress.begin("solve", height as u64);
+    let escalated = std::sync::atomic::AtomicUsize::new(0);
     let rows = kernel::RowOut::split(&mut result);
     rows.into_par_iter().enumerate().for_each(|(y, mut row)| {
         let mut scratch = kernel::Scratch::with_capacity(illumination.len());
@@ -215,9 +315,11 @@ pub fn solve(
                 None => row.status[x] = PixelStatus::Degenerate,
             }
         }
+        escalated.fetch_add(row.escalated, std::sync::atomic::Ordering::Relaxed);
         progress.advance(1);
     });
     progress.end();
+    result.escalated = escalated.into_inner();
     Ok(result)
 }
 
@@ -257,7 +359,7 @@ fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illuminatio
             "max_condition must exceed 1 and dark_threshold_sigma must be >= 0".into(),
         ));
     }
-    Ok(())
+    options.robust.validate()
 }
 
 #[cfg(test)]
