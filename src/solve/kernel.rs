@@ -62,6 +62,11 @@ pub struct RowOut<'a> {
 }
 
 impl<'a> RowOut<'a> {
+    /// True when pixel `x` was solved by least squares over all its lights.
+    pub fn is_plain_least_squares(&self, x: usize) -> bool {
+        self.status[x] == PixelStatus::Solved && self.fit[x] == PixelFit::LeastSquares
+    }
+
     pub fn split(result: &'a mut SolveResult) -> Vec<RowOut<'a>> {
         let w = result.width.max(1);
         let [nx, ny, nz] = &mut result.normal;
@@ -118,6 +123,8 @@ pub struct Kernel<'a> {
     dark_threshold: f64,
     options: &'a SolveOptions,
     chi_square: ChiSquare,
+    /// Adaptive's second pass on a scene that shows sheen: fit the sheen model everywhere.
+    force_sheen: bool,
 }
 
 /// Why measurements were dropped at a pixel, to name the reason when too few remain.
@@ -159,6 +166,15 @@ impl<'a> Kernel<'a> {
                     .sqrt(),
             options,
             chi_square: ChiSquare::new(&options.robust),
+            force_sheen: false,
+        }
+    }
+
+    /// The same kernel fitting the sheen model at every pixel it solves.
+    pub fn forcing_sheen(self) -> Self {
+        Kernel {
+            force_sheen: true,
+            ..self
         }
     }
 
@@ -191,14 +207,16 @@ impl<'a> Kernel<'a> {
         let escalate = match self.options.estimator {
             Estimator::LeastSquares => false,
             Estimator::Robust => true,
-            Estimator::Adaptive => !self.chi_square.accepts(measurements, &fit.n_lum),
+            Estimator::Adaptive => {
+                self.force_sheen || !self.chi_square.accepts(measurements, &fit.n_lum)
+            }
         };
         let fit = if escalate {
             row.escalated += 1;
             let context = robust::Context {
                 kernel: self,
                 view: self.illumination.view(point),
-                force_sheen: self.options.estimator == Estimator::Robust,
+                force_sheen: self.force_sheen || self.options.estimator == Estimator::Robust,
             };
             robust::refine(&context, measurements, buffers, fit)
         } else {

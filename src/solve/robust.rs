@@ -41,6 +41,10 @@ pub struct RobustOptions {
     /// The sheen lobe to fit with the normal where rejecting lights does not explain the data;
     /// `None`: no sheen fit.
     pub sheen: Option<SheenModel>,
+    /// Adaptive estimator: when the sheen fit solved more than this fraction of the pixels in
+    /// the first pass, the scene shows sheen and a second pass fits it at every pixel. 1 %
+    /// is several times the chi-square test's false alarms on Lambertian scenes.
+    pub sheen_scene_fraction: f64,
 }
 
 impl Default for RobustOptions {
@@ -51,6 +55,7 @@ impl Default for RobustOptions {
             max_rejected_fraction: 0.5,
             relative_model_error: 0.0,
             sheen: None,
+            sheen_scene_fraction: 0.01,
         }
     }
 }
@@ -132,56 +137,92 @@ pub(super) fn refine(
     context: &Context,
     measurements: &mut Vec<Measurement>,
     buffers: &mut Buffers,
-    fit: Fit,
+    least_squares: Fit,
 ) -> Fit {
     let options = &context.kernel.options().robust;
     let chi = context.kernel.chi_square();
     let Some(start) = weighted_fit(chi, measurements) else {
-        return fit;
+        return least_squares;
     };
-    let usable = measurements.len();
-    buffers.original.clear();
-    buffers.original.extend_from_slice(measurements);
-    let (weighted, rejected) = if chi.accepts_statistic(start.chi2, measurements.len()) {
-        (start, false)
-    } else {
-        let spare = &mut buffers.darker;
-        spare.clear();
-        spare.extend_from_slice(measurements);
-        let any = reject(context, measurements, start.clone(), Rule::Any);
-        let darker = reject(context, spare, start, Rule::DarkerOnly);
-        let rank = |f: &WeightedFit, lights: usize| {
-            (
-                chi.accepts_statistic(f.chi2, lights),
-                lights,
-                f.n_lum.norm(),
-            )
-        };
-        let (a, b) = (rank(&any, measurements.len()), rank(&darker, spare.len()));
-        if (b.0, b.1) > (a.0, a.1) || ((b.0, b.1) == (a.0, a.1) && b.2 > a.2) {
-            std::mem::swap(measurements, spare);
-            (darker, true)
-        } else {
-            (any, true)
-        }
-    };
-    let rejected = rejected && measurements.len() < usable;
-    if !predicts_light(measurements, &weighted.n_lum) {
-        // Every kept light was read above the dark threshold, so a normal that turns away
-        // from one of them is a numerical failure, not a solution: keep least squares.
-        measurements.clear();
-        measurements.extend_from_slice(&buffers.original);
-        return fit;
+    let lambertian = chi.accepts_statistic(start.chi2, measurements.len());
+    if lambertian && !predicts_light(measurements, &start.n_lum) {
+        // Every light was read above the dark threshold, so a normal that turns away from one
+        // of them is a numerical failure of the weighted fit: keep least squares.
+        return least_squares;
     }
-    let mut fit = weighted.into_fit(chi, measurements, fit.condition, rejected);
+    let condition = least_squares.condition;
+    let all_lights = start.clone().into_fit(chi, measurements, condition, false);
+    if let Some(model) = &options.sheen {
+        // The sheen lobe brightens many lights smoothly: fit it to all lights before treating
+        // any as an outlier.
+        if context.force_sheen || !lambertian {
+            if let Some((fit, statistic)) = sheen::fit(model, context, measurements, &all_lights) {
+                if chi.accepts_statistic(statistic, measurements.len()) {
+                    return fit;
+                }
+            }
+        }
+    }
+    if lambertian {
+        return all_lights;
+    }
+    let Some(weighted) = reject_outliers(context, measurements, buffers, start) else {
+        return least_squares;
+    };
+    let rejected = measurements.len() < buffers.original.len();
+    let mut fit = weighted.into_fit(chi, measurements, condition, rejected);
     if let Some(model) = &options.sheen {
         if context.force_sheen || !chi.accepts(measurements, &fit.n_lum) {
-            if let Some(sheen_fit) = sheen::fit(model, context, measurements, &fit) {
-                fit = sheen_fit;
+            if let Some((sheen_fit, statistic)) = sheen::fit(model, context, measurements, &fit) {
+                let lambert_statistic = chi.statistic(measurements, &fit.n_lum);
+                if context.force_sheen || statistic < lambert_statistic {
+                    fit = sheen_fit;
+                }
             }
         }
     }
     fit
+}
+
+/// The two rejection passes from `start`; leaves the chosen pass's lights in `measurements`
+/// (`None`, with the original lights restored, when the result is not a solution).
+fn reject_outliers(
+    context: &Context,
+    measurements: &mut Vec<Measurement>,
+    buffers: &mut Buffers,
+    start: WeightedFit,
+) -> Option<WeightedFit> {
+    let chi = context.kernel.chi_square();
+    buffers.original.clear();
+    buffers.original.extend_from_slice(measurements);
+    let spare = &mut buffers.darker;
+    spare.clear();
+    spare.extend_from_slice(measurements);
+    let any = reject(context, measurements, start.clone(), Rule::Any);
+    let darker = reject(context, spare, start, Rule::DarkerOnly);
+    let rank = |f: &WeightedFit, lights: usize| {
+        (
+            chi.accepts_statistic(f.chi2, lights),
+            lights,
+            f.n_lum.norm(),
+        )
+    };
+    let (a, b) = (rank(&any, measurements.len()), rank(&darker, spare.len()));
+    let weighted = if (b.0, b.1) > (a.0, a.1) || ((b.0, b.1) == (a.0, a.1) && b.2 > a.2) {
+        std::mem::swap(measurements, spare);
+        darker
+    } else {
+        any
+    };
+    if predicts_light(measurements, &weighted.n_lum) {
+        Some(weighted)
+    } else {
+        // Every kept light was read above the dark threshold, so a normal that turns away
+        // from one of them is a numerical failure, not a solution.
+        measurements.clear();
+        measurements.extend_from_slice(&buffers.original);
+        None
+    }
 }
 
 /// Backward elimination from `fit` under `rule` until the lights pass the chi-square test, no
