@@ -11,6 +11,7 @@
 // than zipped iterators.
 #![allow(clippy::needless_range_loop)]
 
+pub mod calibration;
 pub mod capture;
 pub mod emulated;
 pub mod error;
