@@ -267,7 +267,14 @@ pub fn flatness(
         exposure: 1.0,
         mask: None,
     };
-    let result = solve::solve(&input, &SolveOptions::default(), progress)?;
+    // The sheet is a Lambertian target and the check compares with the least-squares noise
+    // model: no robust rejection (which would trade lights for a larger, differently predicted
+    // error on the pixels the chi-square test flags by chance).
+    let options = SolveOptions {
+        estimator: solve::Estimator::LeastSquares,
+        ..SolveOptions::default()
+    };
+    let result = solve::solve(&input, &options, progress)?;
     let up = Vector3::z();
     let mut angles = Vec::new();
     let mut predicted = Vec::new();
