@@ -1,13 +1,15 @@
 //! The solver's stress suite: property tests (proptest) over random and degenerate light
 //! configurations, albedos from 1e-6 to 1, saturation, and NaN / infinite inputs, for every
-//! estimator. Cases are bounded (`CASES` per property) so CI stays fast.
+//! estimator. Cases are bounded (`CASES` per property, from a fixed seed) so CI stays fast and
+//! repeatable.
 //!
 //! What must hold whatever the input:
 //! - the solve never panics, and no NaN or infinity leaves it (every output plane is finite);
 //! - a pixel that is not solved says why (`PixelStatus`) and carries the neutral outputs;
 //! - a solved pixel has a unit normal, and where the predicted-error model applies (every lit
 //!   light at least 20 sigma above the noise, no light in attached shadow used, predicted error
-//!   under 5 degrees so that the first-order model holds; see `lit_lights`) its angular error
+//!   under 5 degrees at the estimate and at the truth so that the first-order model holds; see
+//!   `lit_lights`, `predicted_at_truth_deg`) its angular error
 //!   is within `ERROR_MULTIPLE` times the predicted mean error. The angle of a 2-D Gaussian error
 //!   whose mean is `e` exceeds `8 e` with probability below 2e-10 even in the worst
 //!   (one-dimensional) case: 8 times the mean of `|x|` is 6.4 sigma.
@@ -21,6 +23,7 @@
 
 use nalgebra::{DMatrix, Vector3};
 use proptest::prelude::*;
+use proptest::test_runner::RngSeed;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
@@ -32,7 +35,8 @@ use psscan::solve::{
     SolveResult,
 };
 
-const CASES: u32 = 48;
+const CASES: u32 = 128;
+const SEED: u64 = 6;
 const ERROR_MULTIPLE: f64 = 8.0;
 const SIDE: usize = 6;
 
@@ -242,15 +246,50 @@ fn lit_lights(case: &Case, i: usize) -> (usize, bool) {
     (lit, well_exposed)
 }
 
+/// The predicted-error model evaluated at the true normal with every lit light whose
+/// readings are finite (the lights least squares uses). The solver evaluates it at its estimate; where the rig leaves a direction nearly
+/// unobserved (nearly coplanar lights) an estimate far off can sit where that direction is
+/// almost along the normal and look precise, so first order is judged at the truth.
+fn predicted_at_truth_deg(case: &Case, frames: &Frames, i: usize) -> f64 {
+    let weights = solve::LUMINANCE_WEIGHTS;
+    let mut a = nalgebra::Matrix3::zeros();
+    let mut noise = nalgebra::Matrix3::zeros();
+    for (k, (d, intensity)) in case.directions.iter().zip(&case.intensities).enumerate() {
+        let l = Vector3::from(*d);
+        let nl = case.normals[i].dot(&l);
+        let rgb = &frames.lights[k].rgb;
+        let finite = [&rgb.r, &rgb.g, &rgb.b]
+            .iter()
+            .all(|p| p.data[i].is_finite());
+        if nl <= 0.0 || !finite {
+            continue;
+        }
+        let var: f64 = (0..3)
+            .map(|c| {
+                let raw = case.albedo[i] * nl * intensity[c];
+                (weights[c] / intensity[c]).powi(2) * NOISE.variance(raw)
+            })
+            .sum();
+        a += l * l.transpose();
+        noise += l * l.transpose() * var;
+    }
+    let Some(a_inv) = a.try_inverse() else {
+        return f64::INFINITY;
+    };
+    let cov = a_inv * noise * a_inv;
+    solve::expected_angle_error(&(case.normals[i] * case.albedo[i]), &cov).to_degrees()
+}
+
 /// Solved pixels where the predicted-error model applies (well-exposed lit lights, no light
 /// in attached shadow among those used, predicted error under 5 degrees so that first order
 /// holds): error within `ERROR_MULTIPLE` times the prediction.
-fn check_errors(case: &Case, result: &SolveResult) -> Result<(), TestCaseError> {
+fn check_errors(case: &Case, frames: &Frames, result: &SolveResult) -> Result<(), TestCaseError> {
     for i in 0..result.status.len() {
         let predicted = result.predicted_error_deg.data[i] as f64;
         let (lit, well_exposed) = lit_lights(case, i);
         let applies = result.status[i] == PixelStatus::Solved
             && predicted < 5.0
+            && predicted_at_truth_deg(case, frames, i) < 5.0
             && well_exposed
             && result.lights_used[i] as usize <= lit;
         if !applies {
@@ -260,9 +299,13 @@ fn check_errors(case: &Case, result: &SolveResult) -> Result<(), TestCaseError> 
         // f32 storage of the normal: about 1e-5 degrees.
         prop_assert!(
             error <= ERROR_MULTIPLE * predicted + 1e-4,
-            "pixel {i}: error {error} deg, predicted {predicted} deg, {} lights, albedo {}",
+            "pixel {i}: error {error} deg, predicted {predicted} deg, {} of {lit} lit lights, \
+             albedo {}, condition {}, normal {:?}, truth {:?}",
             result.lights_used[i],
-            case.albedo[i]
+            case.albedo[i],
+            result.condition.data[i],
+            result.normal_at(i),
+            case.normals[i]
         );
     }
     Ok(())
@@ -272,7 +315,7 @@ fn run_all_estimators(case: &Case, frames: &Frames) -> Result<(), TestCaseError>
     for estimator in Estimator::ALL {
         let result = solve_case(case, frames, estimator);
         check_invariants(&result)?;
-        check_errors(case, &result).map_err(|e| estimator_failed(estimator, e))?;
+        check_errors(case, frames, &result).map_err(|e| estimator_failed(estimator, e))?;
     }
     Ok(())
 }
@@ -282,7 +325,14 @@ fn estimator_failed(estimator: Estimator, e: TestCaseError) -> TestCaseError {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(CASES))]
+    // A fixed seed: CI runs the same cases every time (change `SEED` to explore others), and
+    // no regression files are written.
+    #![proptest_config(ProptestConfig {
+        cases: CASES,
+        rng_seed: RngSeed::Fixed(SEED),
+        failure_persistence: None,
+        ..ProptestConfig::default()
+    })]
 
     #[test]
     fn random_rigs(case in case(random_rig(4..16), false)) {
@@ -316,7 +366,7 @@ proptest! {
         for estimator in Estimator::ALL {
             let result = solve_case(&case, &frames, estimator);
             check_invariants(&result)?;
-            check_errors(&case, &result).map_err(|e| estimator_failed(estimator, e))?;
+            check_errors(&case, &frames, &result).map_err(|e| estimator_failed(estimator, e))?;
         }
     }
 
