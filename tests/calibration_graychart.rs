@@ -26,8 +26,8 @@ fn white_balance_and_linearity_from_the_cfa_values() {
             light.white_balance, expected, l.slope, rig.led_rgb_power(k)[1], l.offset, l.r_squared, l.worst_patch, l.worst_deviation * 100.0, l.clipped_patches
         );
         // Each patch averages over a thousand samples per channel: gains to 0.5 %.
-        for c in 0..3 {
-            assert!((light.white_balance[c] / expected[c] - 1.0).abs() < 0.005);
+        for (got, want) in light.white_balance.iter().zip(expected) {
+            assert!((got / want - 1.0).abs() < 0.005);
         }
         // Linear sensor, exact shading: slope = the LED's green power, offset ~ 0.
         assert!((l.slope / rig.led_rgb_power(k)[1] - 1.0).abs() < 0.01);
