@@ -3,6 +3,7 @@
 //!
 //! Exit codes: 0 success, 1 failure (the message says what and where), 2 usage error.
 
+mod calibrate;
 mod capture;
 mod progress;
 
@@ -49,6 +50,9 @@ enum Command {
     Capture(capture::CaptureArgs),
     /// Bench work on the LED controller: list ports, identify, test, switch LEDs.
     Lights(capture::LightsArgs),
+    /// Calibrate the rig: without a subcommand, the wizard (camera, table, white sheet, flatness
+    /// check; resumable); `calibrate camera` runs one step over photographs.
+    Calibrate(calibrate::CalibrateArgs),
 }
 
 #[derive(Args)]
@@ -271,6 +275,7 @@ pub fn run() -> i32 {
         Command::Solve(args) => solve(args, cli.json, &bars),
         Command::Capture(args) => capture::capture(args, cli.json, &bars),
         Command::Lights(args) => capture::lights(args, cli.json),
+        Command::Calibrate(args) => calibrate::calibrate(args, cli.json, &bars),
     };
     match outcome {
         Ok(()) => 0,
