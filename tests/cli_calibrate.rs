@@ -2,8 +2,10 @@
 //! error of a build without OpenCV, and the interactive wizard driven for real in tmux with
 //! send-keys, stopped half-way and resumed.
 
+#[cfg(feature = "opencv")]
 use std::path::Path;
 use std::process::{Command, Output};
+#[cfg(feature = "opencv")]
 use std::time::{Duration, Instant};
 
 fn psscan(args: &[&str]) -> Output {
