@@ -267,7 +267,14 @@ pub fn flatness(
         exposure: 1.0,
         mask: None,
     };
-    let result = solve::solve(&input, &SolveOptions::default(), progress)?;
+    // Plain least squares with every light: the check measures the calibration, and its
+    // noise tail is predicted for exactly that estimator (a robust fit that drops lights
+    // would change the statistics the prediction describes).
+    let options = SolveOptions {
+        estimator: solve::Estimator::LeastSquares,
+        ..SolveOptions::default()
+    };
+    let result = solve::solve(&input, &options, progress)?;
     let up = Vector3::z();
     let mut angles = Vec::new();
     let mut predicted = Vec::new();
