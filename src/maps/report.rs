@@ -26,6 +26,8 @@ pub struct Report {
     /// Pixels the estimator ran the robust fit on (adaptive: those that failed the chi-square
     /// test against the noise model).
     pub escalated: usize,
+    /// The adaptive estimator found sheen and fitted the sheen model everywhere.
+    pub sheen_everywhere: bool,
     pub residual_mean: f64,
     pub predicted_normal_error_deg: Mean,
     /// Errors against ground truth, when the capture set has it (synthetic sets).
@@ -85,6 +87,7 @@ impl Report {
             pixels,
             fits,
             escalated: result.escalated,
+            sheen_everywhere: result.sheen_everywhere,
             residual_mean,
             predicted_normal_error_deg: Mean {
                 mean: result.mean_predicted_error_deg(),

@@ -30,6 +30,8 @@ pub(super) struct Measurement {
     pub var: f64,
     /// The variance the chi-square test and the weighted fits use (`ChiSquare::prepare`).
     pub test_var: f64,
+    /// Which light (frame index).
+    pub light: u16,
 }
 
 /// Per-thread buffer reused across pixels so the inner loop does not allocate.
@@ -62,6 +64,11 @@ pub struct RowOut<'a> {
 }
 
 impl<'a> RowOut<'a> {
+    /// True when pixel `x` was solved, by a Lambertian fit.
+    pub fn is_lambertian(&self, x: usize) -> bool {
+        self.status[x] == PixelStatus::Solved && self.fit[x] != PixelFit::Sheen
+    }
+
     pub fn split(result: &'a mut SolveResult) -> Vec<RowOut<'a>> {
         let w = result.width.max(1);
         let [nx, ny, nz] = &mut result.normal;
@@ -118,6 +125,8 @@ pub struct Kernel<'a> {
     dark_threshold: f64,
     options: &'a SolveOptions,
     chi_square: ChiSquare,
+    /// Adaptive's second pass on a scene that shows sheen: fit the sheen model everywhere.
+    force_sheen: bool,
 }
 
 /// Why measurements were dropped at a pixel, to name the reason when too few remain.
@@ -159,6 +168,15 @@ impl<'a> Kernel<'a> {
                     .sqrt(),
             options,
             chi_square: ChiSquare::new(&options.robust),
+            force_sheen: false,
+        }
+    }
+
+    /// The same kernel fitting the sheen model at every pixel it solves.
+    pub fn forcing_sheen(self) -> Self {
+        Kernel {
+            force_sheen: true,
+            ..self
         }
     }
 
@@ -191,14 +209,16 @@ impl<'a> Kernel<'a> {
         let escalate = match self.options.estimator {
             Estimator::LeastSquares => false,
             Estimator::Robust => true,
-            Estimator::Adaptive => !self.chi_square.accepts(measurements, &fit.n_lum),
+            Estimator::Adaptive => {
+                self.force_sheen || !self.chi_square.accepts(measurements, &fit.n_lum)
+            }
         };
         let fit = if escalate {
             row.escalated += 1;
             let context = robust::Context {
                 kernel: self,
                 view: self.illumination.view(point),
-                force_sheen: self.options.estimator == Estimator::Robust,
+                force_sheen: self.force_sheen || self.options.estimator == Estimator::Robust,
             };
             robust::refine(&context, measurements, buffers, fit)
         } else {
@@ -274,6 +294,7 @@ impl<'a> Kernel<'a> {
                 lum,
                 var,
                 test_var: var,
+                light: k as u16,
             });
         }
         dropped

@@ -219,9 +219,12 @@ pub struct SolveResult {
     pub status: Vec<PixelStatus>,
     /// Which fit solved each pixel; `LeastSquares` where not solved.
     pub fit: Vec<PixelFit>,
-    /// Pixels whose least-squares fit failed the chi-square test and were refitted (adaptive
-    /// estimator), or that the robust estimator changed.
+    /// Pixels the robust fit ran on: for the adaptive estimator those whose least-squares fit
+    /// failed the chi-square test (first pass), for the robust estimator all.
     pub escalated: usize,
+    /// Adaptive estimator: the first pass found sheen, and a second pass fitted the sheen model
+    /// at every pixel.
+    pub sheen_everywhere: bool,
 }
 
 impl SolveResult {
@@ -239,6 +242,7 @@ impl SolveResult {
             status: vec![PixelStatus::OutsideMask; width * height],
             fit: vec![PixelFit::LeastSquares; width * height],
             escalated: 0,
+            sheen_everywhere: false,
         }
     }
 
@@ -302,12 +306,41 @@ pub fn solve(
 
     let mut result = SolveResult::new(width, height);
     progress.begin("solve", height as u64);
+    result.escalated = solve_pass(input, &kernel, &illumination, &mut result, progress, false);
+    progress.end();
+    if needs_sheen_everywhere(options, &result) {
+        // The sheen lobe brightens many lights smoothly, and part of its bias on the normal is
+        // indistinguishable from a Lambertian tilt at a single pixel: where the scene shows
+        // sheen, every pixel gets the sheen fit.
+        let kernel = kernel.forcing_sheen();
+        progress.begin("sheen", height as u64);
+        solve_pass(input, &kernel, &illumination, &mut result, progress, true);
+        result.sheen_everywhere = true;
+        progress.end();
+    }
+    Ok(result)
+}
+
+/// Solves the pixels of the mask (only those a Lambertian fit solved, with `again`); returns how
+/// many were escalated to the robust fit.
+fn solve_pass(
+    input: &SolveInput,
+    kernel: &kernel::Kernel,
+    illumination: &Illumination,
+    result: &mut SolveResult,
+    progress: &dyn Progress,
+    again: bool,
+) -> usize {
+    let width = result.width;
     let escalated = std::sync::atomic::AtomicUsize::new(0);
-    let rows = kernel::RowOut::split(&mut result);
+    let rows = kernel::RowOut::split(result);
     rows.into_par_iter().enumerate().for_each(|(y, mut row)| {
         let mut scratch = kernel::Scratch::with_capacity(illumination.len());
         for x in 0..width {
             if input.mask.is_some_and(|m| !m.data[y * width + x]) {
+                continue;
+            }
+            if again && !row.is_lambertian(x) {
                 continue;
             }
             match illumination.point(x, y) {
@@ -318,9 +351,19 @@ pub fn solve(
         escalated.fetch_add(row.escalated, std::sync::atomic::Ordering::Relaxed);
         progress.advance(1);
     });
-    progress.end();
-    result.escalated = escalated.into_inner();
-    Ok(result)
+    escalated.into_inner()
+}
+
+/// Adaptive only: true when a sheen model is configured and more of the solved pixels needed
+/// it in the first pass than `sheen_scene_fraction`.
+fn needs_sheen_everywhere(options: &SolveOptions, result: &SolveResult) -> bool {
+    if options.estimator != Estimator::Adaptive || options.robust.sheen.is_none() {
+        return false;
+    }
+    let solved = result.count(PixelStatus::Solved);
+    solved > 0
+        && result.count_fit(PixelFit::Sheen) as f64
+            > options.robust.sheen_scene_fraction * solved as f64
 }
 
 fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illumination) -> Result<()> {

@@ -41,6 +41,10 @@ pub struct RobustOptions {
     /// The sheen lobe to fit with the normal where rejecting lights does not explain the data;
     /// `None`: no sheen fit.
     pub sheen: Option<SheenModel>,
+    /// Adaptive estimator: when the sheen fit solved more than this fraction of the pixels in
+    /// the first pass, the scene shows sheen and a second pass fits it at every pixel. 1 %
+    /// is several times the chi-square test's false alarms on Lambertian scenes.
+    pub sheen_scene_fraction: f64,
 }
 
 impl Default for RobustOptions {
@@ -51,6 +55,7 @@ impl Default for RobustOptions {
             max_rejected_fraction: 0.5,
             relative_model_error: 0.0,
             sheen: None,
+            sheen_scene_fraction: 0.01,
         }
     }
 }
@@ -103,6 +108,8 @@ pub(super) struct Buffers {
     original: Vec<Measurement>,
     /// The lights the darker-only pass keeps.
     darker: Vec<Measurement>,
+    /// The original readings while the sheen-corrected ones are tested.
+    sheen: Vec<Measurement>,
 }
 
 /// True when `n_lum` predicts a positive reading for every light.
@@ -132,56 +139,163 @@ pub(super) fn refine(
     context: &Context,
     measurements: &mut Vec<Measurement>,
     buffers: &mut Buffers,
-    fit: Fit,
+    least_squares: Fit,
 ) -> Fit {
     let options = &context.kernel.options().robust;
     let chi = context.kernel.chi_square();
     let Some(start) = weighted_fit(chi, measurements) else {
-        return fit;
+        return least_squares;
     };
+    let lambertian = chi.accepts_statistic(start.chi2, measurements.len());
+    if lambertian && !predicts_light(measurements, &start.n_lum) {
+        // Every light was read above the dark threshold, so a normal that turns away from one
+        // of them is a numerical failure of the weighted fit: keep least squares.
+        return least_squares;
+    }
+    let condition = least_squares.condition;
+    let all_lights = start.clone().into_fit(chi, measurements, condition, false);
+    let Some(model) = &options.sheen else {
+        if lambertian {
+            return all_lights;
+        }
+        return lambertian_rejection(context, measurements, buffers, start, condition)
+            .unwrap_or(least_squares);
+    };
+    // The sheen lobe brightens many lights smoothly: fit it to all lights before treating any
+    // as an outlier.
+    let mut sheen_normal = None;
+    if context.force_sheen || !lambertian {
+        if let Some((fit, statistic)) = sheen::fit(model, context, measurements, &all_lights) {
+            if chi.accepts_statistic(statistic, measurements.len()) {
+                return fit;
+            }
+            sheen_normal = fit.n_lum.try_normalize(1e-12);
+        }
+    }
+    if lambertian {
+        return all_lights;
+    }
+    // Outliers under the sheen model: the Lambertian tests on the readings with the lobe (at
+    // the all-lights sheen normal) taken out, then the sheen fit on the lights kept.
+    let kept = match sheen_normal {
+        Some(n) => sheen_rejection(context, model, &n, measurements, buffers),
+        None => None,
+    };
+    let Some(kept) = kept else {
+        return lambertian_rejection(context, measurements, buffers, start, condition)
+            .unwrap_or(least_squares);
+    };
+    let lambert_statistic = chi.statistic(measurements, &kept.n_lum);
+    match sheen::fit(model, context, measurements, &kept) {
+        Some((fit, statistic)) if context.force_sheen || statistic < lambert_statistic => fit,
+        _ => kept,
+    }
+}
+
+/// Rejection under the Lambertian model; leaves the kept lights in `measurements`.
+fn lambertian_rejection(
+    context: &Context,
+    measurements: &mut Vec<Measurement>,
+    buffers: &mut Buffers,
+    start: WeightedFit,
+    condition: f64,
+) -> Option<Fit> {
+    let chi = context.kernel.chi_square();
     let usable = measurements.len();
+    let weighted = reject_outliers(context, measurements, buffers, start)?;
+    let rejected = measurements.len() < usable;
+    Some(weighted.into_fit(chi, measurements, condition, rejected))
+}
+
+/// Rejection on the readings with the sheen lobe at normal `n` taken out; leaves the kept
+/// lights' original readings in `measurements` and returns their Lambertian weighted fit.
+fn sheen_rejection(
+    context: &Context,
+    model: &sheen::SheenModel,
+    n: &Vector3<f64>,
+    measurements: &mut Vec<Measurement>,
+    buffers: &mut Buffers,
+) -> Option<Fit> {
+    let chi = context.kernel.chi_square();
+    if measurements.iter().any(|m| m.light >= 64) {
+        // The kept set is tracked as a 64-bit mask of light indices.
+        return None;
+    }
+    let mut originals = std::mem::take(&mut buffers.sheen);
+    originals.clear();
+    originals.extend_from_slice(measurements);
+    for m in measurements.iter_mut() {
+        *m = sheen::lambertian_equivalent(model, &context.view, n, m);
+    }
+    let outcome = weighted_fit(chi, measurements)
+        .and_then(|start| reject_outliers(context, measurements, buffers, start));
+    let kept = outcome.map(|_| {
+        let rejected = measurements.len() < originals.len();
+        let kept_lights: u64 = measurements
+            .iter()
+            .fold(0, |mask, m| mask | 1u64 << m.light);
+        measurements.clear();
+        measurements.extend(
+            originals
+                .iter()
+                .filter(|m| kept_lights & (1u64 << m.light) != 0),
+        );
+        rejected
+    });
+    let result = match kept {
+        Some(rejected) => weighted_fit(chi, measurements).map(|w| {
+            let condition = condition_of(measurements);
+            w.into_fit(chi, measurements, condition, rejected)
+        }),
+        None => {
+            measurements.clear();
+            measurements.extend_from_slice(&originals);
+            None
+        }
+    };
+    buffers.sheen = originals;
+    result
+}
+
+/// The two rejection passes from `start`; leaves the chosen pass's lights in `measurements`
+/// (`None`, with the original lights restored, when the result is not a solution).
+fn reject_outliers(
+    context: &Context,
+    measurements: &mut Vec<Measurement>,
+    buffers: &mut Buffers,
+    start: WeightedFit,
+) -> Option<WeightedFit> {
+    let chi = context.kernel.chi_square();
     buffers.original.clear();
     buffers.original.extend_from_slice(measurements);
-    let (weighted, rejected) = if chi.accepts_statistic(start.chi2, measurements.len()) {
-        (start, false)
-    } else {
-        let spare = &mut buffers.darker;
-        spare.clear();
-        spare.extend_from_slice(measurements);
-        let any = reject(context, measurements, start.clone(), Rule::Any);
-        let darker = reject(context, spare, start, Rule::DarkerOnly);
-        let rank = |f: &WeightedFit, lights: usize| {
-            (
-                chi.accepts_statistic(f.chi2, lights),
-                lights,
-                f.n_lum.norm(),
-            )
-        };
-        let (a, b) = (rank(&any, measurements.len()), rank(&darker, spare.len()));
-        if (b.0, b.1) > (a.0, a.1) || ((b.0, b.1) == (a.0, a.1) && b.2 > a.2) {
-            std::mem::swap(measurements, spare);
-            (darker, true)
-        } else {
-            (any, true)
-        }
+    let spare = &mut buffers.darker;
+    spare.clear();
+    spare.extend_from_slice(measurements);
+    let any = reject(context, measurements, start.clone(), Rule::Any);
+    let darker = reject(context, spare, start, Rule::DarkerOnly);
+    let rank = |f: &WeightedFit, lights: usize| {
+        (
+            chi.accepts_statistic(f.chi2, lights),
+            lights,
+            f.n_lum.norm(),
+        )
     };
-    let rejected = rejected && measurements.len() < usable;
-    if !predicts_light(measurements, &weighted.n_lum) {
+    let (a, b) = (rank(&any, measurements.len()), rank(&darker, spare.len()));
+    let weighted = if (b.0, b.1) > (a.0, a.1) || ((b.0, b.1) == (a.0, a.1) && b.2 > a.2) {
+        std::mem::swap(measurements, spare);
+        darker
+    } else {
+        any
+    };
+    if predicts_light(measurements, &weighted.n_lum) {
+        Some(weighted)
+    } else {
         // Every kept light was read above the dark threshold, so a normal that turns away
-        // from one of them is a numerical failure, not a solution: keep least squares.
+        // from one of them is a numerical failure, not a solution.
         measurements.clear();
         measurements.extend_from_slice(&buffers.original);
-        return fit;
+        None
     }
-    let mut fit = weighted.into_fit(chi, measurements, fit.condition, rejected);
-    if let Some(model) = &options.sheen {
-        if context.force_sheen || !chi.accepts(measurements, &fit.n_lum) {
-            if let Some(sheen_fit) = sheen::fit(model, context, measurements, &fit) {
-                fit = sheen_fit;
-            }
-        }
-    }
-    fit
 }
 
 /// Backward elimination from `fit` under `rule` until the lights pass the chi-square test, no

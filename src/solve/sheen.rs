@@ -78,21 +78,72 @@ impl SheenModel {
         l: &Vector3<f64>,
         v: &Vector3<f64>,
     ) -> (f64, f64) {
-        let nl = n.dot(l);
+        self.terms_at(&LightGeometry::new(f0, l, v), n, v)
+    }
+
+    /// `terms` with the normal-independent part precomputed.
+    #[inline]
+    fn terms_at(&self, light: &LightGeometry, n: &Vector3<f64>, v: &Vector3<f64>) -> (f64, f64) {
+        let nl = n.dot(&light.l);
         if nl <= 0.0 {
             return (0.0, 0.0);
         }
         let nv = n.dot(v).max(0.0);
-        let h = (l + v).normalize();
-        let s = (1.0 - v.dot(&h).clamp(0.0, 1.0)).powi(5);
-        let fresnel = f0 + (1.0 - f0) * s;
-        let d = self.distribution(n.dot(&h).clamp(-1.0, 1.0));
+        let d = self.distribution(n.dot(&light.h).clamp(-1.0, 1.0));
         let g = std::f64::consts::PI * d * nl / (4.0 * (nl + nv - nl * nv));
-        ((1.0 - fresnel) * nl, fresnel * g)
+        ((1.0 - light.fresnel) * nl, light.fresnel * g)
     }
 
     fn luminance_f0(&self) -> f64 {
         (0..3).map(|c| LUMINANCE_WEIGHTS[c] * self.f0[c]).sum()
+    }
+}
+
+/// What a light's sheen terms need that does not depend on the normal.
+#[derive(Clone, Copy, Default)]
+struct LightGeometry {
+    l: Vector3<f64>,
+    /// Half vector between the light and the view.
+    h: Vector3<f64>,
+    /// Schlick's Fresnel term at the half vector.
+    fresnel: f64,
+}
+
+impl LightGeometry {
+    fn new(f0: f64, l: &Vector3<f64>, v: &Vector3<f64>) -> Self {
+        let h = (l + v).normalize();
+        let s = (1.0 - v.dot(&h).clamp(0.0, 1.0)).powi(5);
+        LightGeometry {
+            l: *l,
+            h,
+            fresnel: f0 + (1.0 - f0) * s,
+        }
+    }
+}
+
+/// `m` with the sheen lobe at normal `n` taken out: `(reading - sheen) / (1 - F)`, which is
+/// `kd (n.l)` where the model holds, so that the Lambertian outlier tests apply to it.
+pub(super) fn lambertian_equivalent(
+    model: &SheenModel,
+    view: &Vector3<f64>,
+    n: &Vector3<f64>,
+    m: &Measurement,
+) -> Measurement {
+    let f0 = model.luminance_f0();
+    let geometry = LightGeometry::new(f0, &m.l, view);
+    let (_, sheen) = model.terms_at(&geometry, n, view);
+    let diffuse_share = 1.0 - geometry.fresnel;
+    let rgb = std::array::from_fn(|c| {
+        let g = LightGeometry::new(model.f0[c], &m.l, view);
+        (m.rgb[c] - model.terms_at(&g, n, view).1) / (1.0 - g.fresnel)
+    });
+    let scale2 = diffuse_share * diffuse_share;
+    Measurement {
+        lum: (m.lum - sheen) / diffuse_share,
+        rgb,
+        var: m.var / scale2,
+        test_var: m.test_var / scale2,
+        ..*m
     }
 }
 
@@ -109,44 +160,64 @@ fn perturbed(
 /// Returns the albedo; `residuals` gets one entry per measurement.
 fn residuals(
     model: &SheenModel,
-    context: &Context,
-    measurements: &[Measurement],
+    problem: &Problem,
     n: &Vector3<f64>,
     residuals: &mut [f64],
 ) -> f64 {
-    let chi = context.kernel.chi_square();
-    let f0 = model.luminance_f0();
+    let m = problem.measurements.len();
+    let mut diffuse = [0.0; MAX_LIGHTS_SHEEN];
     let (mut num, mut den) = (0.0, 0.0);
-    for (k, m) in measurements.iter().enumerate() {
-        let (diffuse, sheen) = model.terms(f0, n, &m.l, &context.view);
-        let w = 1.0 / chi.variance(m);
-        num += w * diffuse * (m.lum - sheen);
-        den += w * diffuse * diffuse;
+    for (k, meas) in problem.measurements.iter().enumerate() {
+        let (d, sheen) = model.terms_at(&problem.geometry[k], n, &problem.view);
+        let w = problem.weights[k];
+        num += w * d * (meas.lum - sheen);
+        den += w * d * d;
+        diffuse[k] = d;
         residuals[k] = sheen;
     }
     let kd = if den > 0.0 { num / den } else { 0.0 };
-    for (k, m) in measurements.iter().enumerate() {
-        let (diffuse, _) = model.terms(f0, n, &m.l, &context.view);
-        let predicted = kd * diffuse + residuals[k];
-        residuals[k] = (m.lum - predicted) / chi.variance(m).sqrt();
+    for k in 0..m {
+        let predicted = kd * diffuse[k] + residuals[k];
+        residuals[k] = (problem.measurements[k].lum - predicted) * problem.weights[k].sqrt();
     }
     kd
+}
+
+/// One pixel's sheen problem with its normal-independent parts precomputed.
+struct Problem<'a> {
+    measurements: &'a [Measurement],
+    geometry: [LightGeometry; MAX_LIGHTS_SHEEN],
+    weights: [f64; MAX_LIGHTS_SHEEN],
+    view: Vector3<f64>,
 }
 
 const MAX_LIGHTS_SHEEN: usize = 64;
 const ITERATIONS: usize = 12;
 
-/// Fits the sheen model to `measurements`, starting from the least-squares `lambert` fit.
-/// `None` when it does not explain the data better than `lambert` or does not converge.
+/// Fits the sheen model to `measurements`, starting from the normal of the Lambertian fit
+/// `lambert`. Returns the fit and its chi-square statistic; `None` when it does not converge
+/// to a normal facing the camera's side.
 pub(super) fn fit(
     model: &SheenModel,
     context: &Context,
     measurements: &[Measurement],
     lambert: &Fit,
-) -> Option<Fit> {
+) -> Option<(Fit, f64)> {
     let m = measurements.len();
     if !(4..=MAX_LIGHTS_SHEEN).contains(&m) {
         return None;
+    }
+    let chi = context.kernel.chi_square();
+    let f0 = model.luminance_f0();
+    let mut problem = Problem {
+        measurements,
+        geometry: [LightGeometry::default(); MAX_LIGHTS_SHEEN],
+        weights: [0.0; MAX_LIGHTS_SHEEN],
+        view: context.view,
+    };
+    for (k, meas) in measurements.iter().enumerate() {
+        problem.geometry[k] = LightGeometry::new(f0, &meas.l, &context.view);
+        problem.weights[k] = 1.0 / chi.variance(meas);
     }
     let n0 = lambert.n_lum.try_normalize(1e-12)?;
     let tangent = tangent_basis(&n0);
@@ -154,13 +225,7 @@ pub(super) fn fit(
     let mut r = [0.0; MAX_LIGHTS_SHEEN];
     let mut r_step = [0.0; MAX_LIGHTS_SHEEN];
     let mut jac = [[0.0; 2]; MAX_LIGHTS_SHEEN];
-    residuals(
-        model,
-        context,
-        measurements,
-        &perturbed(&n0, &tangent, &p),
-        &mut r[..m],
-    );
+    residuals(model, &problem, &n0, &mut r[..m]);
     let mut cost: f64 = r[..m].iter().map(|e| e * e).sum();
     let mut damping = 1e-3;
     const H: f64 = 1e-6;
@@ -170,8 +235,7 @@ pub(super) fn fit(
             q[d] += H;
             residuals(
                 model,
-                context,
-                measurements,
+                &problem,
                 &perturbed(&n0, &tangent, &q),
                 &mut r_step[..m],
             );
@@ -197,8 +261,7 @@ pub(super) fn fit(
             let q = p + step;
             residuals(
                 model,
-                context,
-                measurements,
+                &problem,
                 &perturbed(&n0, &tangent, &q),
                 &mut r_step[..m],
             );
@@ -206,7 +269,7 @@ pub(super) fn fit(
             if new_cost < cost {
                 p = q;
                 r[..m].copy_from_slice(&r_step[..m]);
-                let converged = cost - new_cost < 1e-9 * cost || step.norm() < 1e-9;
+                let converged = cost - new_cost < 1e-6 * cost || step.norm() < 1e-7;
                 cost = new_cost;
                 damping = (damping * 0.3).max(1e-9);
                 improved = !converged;
@@ -218,42 +281,27 @@ pub(super) fn fit(
             break;
         }
     }
-    let lambert_cost = context
-        .kernel
-        .chi_square()
-        .statistic(measurements, &lambert.n_lum);
-    if cost.is_nan() || cost >= lambert_cost {
-        return None;
-    }
     let n = perturbed(&n0, &tangent, &p);
-    if n.z <= 0.0 {
+    if n.z <= 0.0 || !cost.is_finite() {
         return None;
     }
-    outputs(model, context, measurements, &n, cost, lambert)
+    outputs(model, &problem, &n, lambert).map(|fit| (fit, cost))
 }
 
 /// The fit's normal, albedo and residual in the shape the kernel writes.
-fn outputs(
-    model: &SheenModel,
-    context: &Context,
-    measurements: &[Measurement],
-    n: &Vector3<f64>,
-    _cost: f64,
-    lambert: &Fit,
-) -> Option<Fit> {
+fn outputs(model: &SheenModel, problem: &Problem, n: &Vector3<f64>, lambert: &Fit) -> Option<Fit> {
+    let measurements = problem.measurements;
     let m = measurements.len();
     let mut r = [0.0; MAX_LIGHTS_SHEEN];
-    let kd_lum = residuals(model, context, measurements, n, &mut r[..m]);
-    let chi = context.kernel.chi_square();
-    let sum_sq: f64 = measurements
-        .iter()
-        .zip(&r[..m])
-        .map(|(meas, e)| e * e * chi.variance(meas))
-        .sum();
+    let kd_lum = residuals(model, problem, n, &mut r[..m]);
+    if kd_lum.is_nan() || kd_lum <= 0.0 {
+        return None;
+    }
+    let sum_sq: f64 = (0..m).map(|k| r[k] * r[k] / problem.weights[k]).sum();
     let kd_rgb: [f64; 3] = std::array::from_fn(|c| {
         let (mut num, mut den) = (0.0, 0.0);
         for meas in measurements {
-            let (diffuse, sheen) = model.terms(model.f0[c], n, &meas.l, &context.view);
+            let (diffuse, sheen) = model.terms(model.f0[c], n, &meas.l, &problem.view);
             num += diffuse * (meas.rgb[c] - sheen);
             den += diffuse * diffuse;
         }
@@ -263,9 +311,6 @@ fn outputs(
             0.0
         }
     });
-    if kd_lum.is_nan() || kd_lum <= 0.0 {
-        return None;
-    }
     Some(Fit {
         n_lum: n * kd_lum,
         n_rgb: kd_rgb.map(|kd| n * kd),
