@@ -42,12 +42,12 @@ impl Scratch {
 
 /// One row of every output plane, borrowed mutably so rows can be solved in parallel.
 pub struct RowOut<'a> {
-    normal: [&'a mut [f32]; 3],
-    albedo: [&'a mut [f32]; 3],
-    residual: &'a mut [f32],
-    predicted: &'a mut [f32],
-    condition: &'a mut [f32],
-    lights: &'a mut [u8],
+    pub(super) normal: [&'a mut [f32]; 3],
+    pub(super) albedo: [&'a mut [f32]; 3],
+    pub(super) residual: &'a mut [f32],
+    pub(super) predicted: &'a mut [f32],
+    pub(super) condition: &'a mut [f32],
+    pub(super) lights: &'a mut [u8],
     pub status: &'a mut [PixelStatus],
 }
 
@@ -227,7 +227,12 @@ impl<'a> Kernel<'a> {
             return;
         }
         let n = fit.n_lum / albedo_lum;
-        let albedo = fit.n_rgb.map(|nc| nc.dot(&n));
+        // A normal-only solve reports the luminance albedo in every channel.
+        let albedo = if self.options.normal_only {
+            [albedo_lum; 3]
+        } else {
+            fit.n_rgb.map(|nc| nc.dot(&n))
+        };
         let sum_sq: f64 = measurements
             .iter()
             .map(|m| (m.lum - fit.n_lum.dot(&m.l)).powi(2))

@@ -8,9 +8,11 @@
 //! shadow reads zero whatever the normal, so it would only bias the fit). Pixels left with
 //! fewer than three lights, or with lights too close to coplanar, are flagged, never NaN.
 
+mod fast;
 mod kernel;
 mod lights;
 mod predict;
+pub mod tiles;
 
 use nalgebra::Vector3;
 use rayon::prelude::*;
@@ -38,6 +40,16 @@ pub enum Method {
     Svd,
 }
 
+/// The floating-point type of the streaming kernel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Precision {
+    #[default]
+    F64,
+    /// Single precision: twice the lanes per vector; costs ~1e-4 degrees (see docs/bench).
+    F32,
+}
+
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct SolveOptions {
     pub light_model: LightModel,
@@ -49,6 +61,22 @@ pub struct SolveOptions {
     pub max_condition: f64,
     /// Compute the per-pixel predicted error (a few more multiplies per light).
     pub predict_error: bool,
+    /// Precision of the streaming kernel. `F32`, or a tile tolerance, selects the streaming
+    /// kernel (`fast.rs`); `F64` without tiles keeps the exact per-pixel kernel.
+    pub precision: Precision,
+    /// Share light coefficients across tiles (interpolated from their corners) where that
+    /// moves normals by at most this many degrees; `None`: exact coefficients per pixel.
+    pub tile_tolerance_deg: Option<f64>,
+    /// Solve the luminance alone (one solve instead of three): the normal, and the luminance
+    /// albedo in every albedo channel.
+    pub normal_only: bool,
+}
+
+impl SolveOptions {
+    /// Whether the streaming kernel solves the pixels where every light is usable.
+    pub fn streaming(&self) -> bool {
+        self.precision == Precision::F32 || self.tile_tolerance_deg.is_some()
+    }
 }
 
 impl Default for SolveOptions {
@@ -59,6 +87,9 @@ impl Default for SolveOptions {
             dark_threshold_sigma: 3.0,
             max_condition: 1e3,
             predict_error: true,
+            precision: Precision::F64,
+            tile_tolerance_deg: None,
+            normal_only: false,
         }
     }
 }
@@ -203,6 +234,18 @@ pub fn solve(
 
     let mut result = SolveResult::new(width, height);
     progress.begin("solve", height as u64);
+    if options.streaming() {
+        solve_streaming(
+            input,
+            options,
+            &illumination,
+            &kernel,
+            &mut result,
+            progress,
+        );
+        progress.end();
+        return Ok(result);
+    }
     let rows = kernel::RowOut::split(&mut result);
     rows.into_par_iter().enumerate().for_each(|(y, mut row)| {
         let mut scratch = kernel::Scratch::with_capacity(illumination.len());
@@ -219,6 +262,30 @@ pub fn solve(
     });
     progress.end();
     Ok(result)
+}
+
+/// The streaming kernel at the requested precision and coefficient source.
+fn solve_streaming(
+    input: &SolveInput,
+    options: &SolveOptions,
+    illumination: &Illumination,
+    kernel: &kernel::Kernel,
+    result: &mut SolveResult,
+    progress: &dyn Progress,
+) {
+    let (w, h) = (input.frames.width, input.frames.height);
+    let coefficients = match options.tile_tolerance_deg {
+        Some(tolerance) => match tiles::plan(illumination, w, h, tolerance) {
+            Some(grid) => fast::Coefficients::Tiled(grid),
+            None => fast::Coefficients::PerPixel,
+        },
+        None => fast::Coefficients::PerPixel,
+    };
+    let ctx = fast::Context::new(input, options, illumination, &coefficients, kernel);
+    match options.precision {
+        Precision::F32 => fast::solve_rows::<f32>(&ctx, result, progress, fast::row_f32),
+        Precision::F64 => fast::solve_rows::<f64>(&ctx, result, progress, fast::row_f64),
+    }
 }
 
 fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illumination) -> Result<()> {
@@ -249,6 +316,19 @@ fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illuminatio
             input.exposure
         )));
     }
+    if let Some(t) = options.tile_tolerance_deg {
+        if !(t > 0.0 && t <= 1.0) {
+            return Err(Error::Invalid(format!(
+                "tile tolerance must be in (0, 1] degrees, got {t}"
+            )));
+        }
+    }
+    if options.streaming() && options.method == Method::Svd {
+        return Err(Error::Invalid(
+            "the SVD method is per pixel in f64 only: drop --precision f32 and --tile-tolerance"
+                .into(),
+        ));
+    }
     let condition_ok = options.max_condition > 1.0 && !options.max_condition.is_nan();
     let threshold_ok =
         options.dark_threshold_sigma >= 0.0 && options.dark_threshold_sigma.is_finite();
@@ -262,3 +342,6 @@ fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illuminatio
 
 #[cfg(test)]
 mod tests;
+
+#[cfg(test)]
+mod tests_fast;
