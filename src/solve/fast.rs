@@ -9,8 +9,8 @@
 //!   tests (textiles shadow some light at a third of their pixels, so this is the common case,
 //!   not a fallback), inverted in closed form, the residual from a second pass over the lights.
 //! - Structure of arrays in chunks of [`LANES`] pixels of one row, in `f32` or `f64`, so LLVM
-//!   vectorises the lanes (lights failing a test are blended out, not branched around); AVX2
-//!   is chosen at run time (`multiversion`), the baseline build stays portable. Rows run in
+//!   vectorises the lanes (lights failing a test are blended out, not branched around);
+//!   AVX-512 or AVX2 with FMA is chosen at run time, the baseline build stays portable. Rows run in
 //!   parallel (rayon) and each reads each input plane once.
 //!
 //! Pixels left with fewer than three lights, degenerate or non-finite results, or in a tile
@@ -18,7 +18,6 @@
 //! reason. Fast-path pixels get normal, albedo, residual, condition number and lights used;
 //! their predicted error is left 0 (only the exact kernel computes it).
 
-use multiversion::multiversion;
 use rayon::prelude::*;
 
 use super::kernel::{Kernel, RowOut, Scratch};
@@ -208,20 +207,101 @@ pub fn solve_rows<T: Real>(
     );
 }
 
-/// The f32 kernel, compiled for AVX2 as well and chosen at run time.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+avx"))]
+/// The f32 kernel: AVX-512 or AVX2 with fused multiply-add where the CPU has them (checked
+/// at run time, cached by std), the portable build otherwise.
 pub fn row_f32(ctx: &Context, y: usize, row: &mut RowOut, scratch: &mut RowScratch<f32>) {
-    solve_row(ctx, y, row, scratch)
+    #[cfg(target_arch = "x86_64")]
+    {
+        if simd::avx512() {
+            // SAFETY: the CPU has the features `row_avx512` is compiled for.
+            return unsafe { simd::row_avx512(ctx, y, row, scratch) };
+        }
+        if simd::avx2() {
+            // SAFETY: as above.
+            return unsafe { simd::row_avx2(ctx, y, row, scratch) };
+        }
+    }
+    solve_row::<f32, false>(ctx, y, row, scratch)
 }
 
-/// The f64 kernel, compiled for AVX2 as well and chosen at run time.
-#[multiversion(targets("x86_64+avx2+fma", "x86_64+avx"))]
+/// The f64 kernel, dispatched as [`row_f32`].
 pub fn row_f64(ctx: &Context, y: usize, row: &mut RowOut, scratch: &mut RowScratch<f64>) {
-    solve_row(ctx, y, row, scratch)
+    #[cfg(target_arch = "x86_64")]
+    {
+        if simd::avx512() {
+            // SAFETY: the CPU has the features `row_avx512` is compiled for.
+            return unsafe { simd::row_avx512(ctx, y, row, scratch) };
+        }
+        if simd::avx2() {
+            // SAFETY: as above.
+            return unsafe { simd::row_avx2(ctx, y, row, scratch) };
+        }
+    }
+    solve_row::<f64, false>(ctx, y, row, scratch)
+}
+
+/// The kernel compiled for wider vectors and fused multiply-add.
+#[cfg(target_arch = "x86_64")]
+mod simd {
+    use super::{solve_row, Context, Real, RowOut, RowScratch};
+
+    /// `PSSCAN_PORTABLE_KERNEL=1` forces the portable build (to compare, or to test it).
+    fn allowed() -> bool {
+        static PORTABLE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        !*PORTABLE.get_or_init(|| std::env::var_os("PSSCAN_PORTABLE_KERNEL").is_some())
+    }
+
+    pub fn avx512() -> bool {
+        allowed()
+            && is_x86_feature_detected!("avx512f")
+            && is_x86_feature_detected!("avx512bw")
+            && is_x86_feature_detected!("avx512vl")
+            && avx2()
+    }
+
+    pub fn avx2() -> bool {
+        allowed() && is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma")
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2,fma")]
+    pub unsafe fn row_avx512<T: Real>(
+        ctx: &Context,
+        y: usize,
+        row: &mut RowOut,
+        s: &mut RowScratch<T>,
+    ) {
+        solve_row::<T, true>(ctx, y, row, s)
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn row_avx2<T: Real>(
+        ctx: &Context,
+        y: usize,
+        row: &mut RowOut,
+        s: &mut RowScratch<T>,
+    ) {
+        solve_row::<T, true>(ctx, y, row, s)
+    }
+}
+
+/// `a * b + c`, fused where the CPU has FMA (`FMA` is only set in code compiled for it: a
+/// fused multiply-add without the instruction is a slow library call).
+#[inline(always)]
+fn madd<T: Real, const FMA: bool>(a: T, b: T, c: T) -> T {
+    if FMA {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
 }
 
 #[inline(always)]
-fn solve_row<T: Real>(ctx: &Context, y: usize, row: &mut RowOut, scratch: &mut RowScratch<T>) {
+fn solve_row<T: Real, const FMA: bool>(
+    ctx: &Context,
+    y: usize,
+    row: &mut RowOut,
+    scratch: &mut RowScratch<T>,
+) {
     let w = ctx.frames.width;
     if w < LANES {
         for x in 0..w {
@@ -251,18 +331,15 @@ fn solve_row<T: Real>(ctx: &Context, y: usize, row: &mut RowOut, scratch: &mut R
             valid[l] &= inside[l];
         }
         let stride = scratch.coef.len();
-        if let Some((jx, offset)) = linear {
-            let line = Source::Linear {
+        let source = match linear {
+            Some((jx, offset)) => Source::Linear {
                 left: &scratch.row_left[jx * stride..(jx + 1) * stride],
                 slope: &scratch.row_slope[jx * stride..(jx + 1) * stride],
                 offset,
-            };
-            for i in 0..stride {
-                scratch.coef[i] = line.get(i);
-            }
-        }
-        let source = Source::Table(&scratch.coef);
-        let ok = solve_chunk(ctx, y * w + x, &source, valid, row, x);
+            },
+            None => Source::Table(&scratch.coef),
+        };
+        let ok = solve_chunk::<T, FMA>(ctx, y * w + x, &source, valid, row, x);
         for l in 0..LANES {
             if inside[l] && !ok[l] {
                 exact_pixel(ctx, y, x + l, row, scratch);
@@ -341,7 +418,7 @@ enum Source<'a, T> {
 impl<T: Real> Source<'_, T> {
     /// Coefficient `i` for every lane.
     #[inline(always)]
-    fn get(&self, i: usize) -> [T; LANES] {
+    fn get<const FMA: bool>(&self, i: usize) -> [T; LANES] {
         match self {
             Source::Linear {
                 left,
@@ -349,7 +426,7 @@ impl<T: Real> Source<'_, T> {
                 offset,
             } => {
                 let (a, b) = (left[i], slope[i]);
-                offset.map(|o| a + b * o)
+                offset.map(|o| madd::<T, FMA>(b, o, a))
             }
             Source::Table(t) => t[i],
         }
@@ -407,7 +484,7 @@ fn fill_coefficients<T: Real>(
 /// Solves `LANES` pixels starting at pixel index `i0` (column `x` of `row`); returns which
 /// lanes succeeded. Every lane is written; the caller overwrites the lanes that failed.
 #[inline(always)]
-fn solve_chunk<T: Real>(
+fn solve_chunk<T: Real, const FMA: bool>(
     ctx: &Context,
     i0: usize,
     coef: &Source<T>,
@@ -421,7 +498,7 @@ fn solve_chunk<T: Real>(
     let zero = T::zero();
     let k_count = ctx.frames.lights.len();
     // Normal matrix (xx, xy, xz, yy, yz, zz) of all lights; dropped lights are subtracted.
-    let mut a: [[T; LANES]; 6] = std::array::from_fn(|i| coef.get(4 * k_count + i));
+    let mut a: [[T; LANES]; 6] = std::array::from_fn(|i| coef.get::<FMA>(4 * k_count + i));
     // Right-hand sides: R, G, B, or the luminance alone in slot 0 for a normal-only solve;
     // and the sum of squared luminance measurements, for the residual.
     let mut b = [[[zero; LANES]; 3]; 3];
@@ -439,47 +516,55 @@ fn solve_chunk<T: Real>(
             None => &NONE_SATURATED,
         };
         let s = ctx.scale[k].map(T::of);
-        let (lx, ly, lz) = (coef.get(3 * k), coef.get(3 * k + 1), coef.get(3 * k + 2));
-        let inv_falloff = coef.get(3 * k_count + k);
+        let (lx, ly, lz) = (
+            coef.get::<FMA>(3 * k),
+            coef.get::<FMA>(3 * k + 1),
+            coef.get::<FMA>(3 * k + 2),
+        );
+        let inv_falloff = coef.get::<FMA>(3 * k_count + k);
         let mut keep = [false; LANES];
         let mut v = [[zero; LANES]; 3];
         let mut lum_k = [zero; LANES];
         for l in 0..LANES {
-            let lum = wt[0] * r[l] + wt[1] * g[l] + wt[2] * bl[l];
+            let lum = madd::<T, FMA>(wt[0], r[l], madd::<T, FMA>(wt[1], g[l], wt[2] * bl[l]));
             keep[l] = !sat[l] && lum > threshold && lum <= max;
             let m = if keep[l] { inv_falloff[l] } else { zero };
             let rgb = [r[l], g[l], bl[l]].map(|v| if keep[l] { v } else { zero });
             for c in 0..3 {
                 v[c][l] = rgb[c] * (s[c] * m);
             }
-            lum_k[l] = wt[0] * v[0][l] + wt[1] * v[1][l] + wt[2] * v[2][l];
-            lum_sq[l] += lum_k[l] * lum_k[l];
+            lum_k[l] = madd::<T, FMA>(
+                wt[0],
+                v[0][l],
+                madd::<T, FMA>(wt[1], v[1][l], wt[2] * v[2][l]),
+            );
+            lum_sq[l] = madd::<T, FMA>(lum_k[l], lum_k[l], lum_sq[l]);
         }
         {
             for l in 0..LANES {
                 let one = if keep[l] { zero } else { T::one() };
                 dropped[l] += one;
                 let (mx, my, mz) = (one * lx[l], one * ly[l], one * lz[l]);
-                a[0][l] = a[0][l] - mx * lx[l];
-                a[1][l] = a[1][l] - mx * ly[l];
-                a[2][l] = a[2][l] - mx * lz[l];
-                a[3][l] = a[3][l] - my * ly[l];
-                a[4][l] = a[4][l] - my * lz[l];
-                a[5][l] = a[5][l] - mz * lz[l];
+                a[0][l] = madd::<T, FMA>(-mx, lx[l], a[0][l]);
+                a[1][l] = madd::<T, FMA>(-mx, ly[l], a[1][l]);
+                a[2][l] = madd::<T, FMA>(-mx, lz[l], a[2][l]);
+                a[3][l] = madd::<T, FMA>(-my, ly[l], a[3][l]);
+                a[4][l] = madd::<T, FMA>(-my, lz[l], a[4][l]);
+                a[5][l] = madd::<T, FMA>(-mz, lz[l], a[5][l]);
             }
         }
         if ctx.normal_only {
             for l in 0..LANES {
-                b[0][0][l] += lx[l] * lum_k[l];
-                b[0][1][l] += ly[l] * lum_k[l];
-                b[0][2][l] += lz[l] * lum_k[l];
+                b[0][0][l] = madd::<T, FMA>(lx[l], lum_k[l], b[0][0][l]);
+                b[0][1][l] = madd::<T, FMA>(ly[l], lum_k[l], b[0][1][l]);
+                b[0][2][l] = madd::<T, FMA>(lz[l], lum_k[l], b[0][2][l]);
             }
         } else {
             for c in 0..3 {
                 for l in 0..LANES {
-                    b[c][0][l] += lx[l] * v[c][l];
-                    b[c][1][l] += ly[l] * v[c][l];
-                    b[c][2][l] += lz[l] * v[c][l];
+                    b[c][0][l] = madd::<T, FMA>(lx[l], v[c][l], b[c][0][l]);
+                    b[c][1][l] = madd::<T, FMA>(ly[l], v[c][l], b[c][1][l]);
+                    b[c][2][l] = madd::<T, FMA>(lz[l], v[c][l], b[c][2][l]);
                 }
             }
         }

@@ -224,7 +224,7 @@ fn interpolation_error_at(
 }
 
 /// The largest tile whose interpolation error stays within half of `tolerance_deg`, checked at the
-/// centre and edge midpoints of every tile (at most ~4000 tiles are sampled, evenly). `None`
+/// centre and edge midpoints of every tile (at most ~400 tiles are sampled, evenly). `None`
 /// when even the smallest tile exceeds the tolerance (the caller then computes `G` per pixel).
 pub fn plan(
     illumination: &Illumination,
@@ -236,7 +236,7 @@ pub fn plan(
     for tile in TILE_SIZES {
         let mut grid = TileGrid::build(illumination, w, h, tile);
         let tiles = (grid.nodes_x.max(2) - 1) * (grid.nodes_y.max(2) - 1);
-        let step = (tiles / 4000).max(1);
+        let step = (tiles / 400).max(1);
         let mut worst: f64 = 0.0;
         for t in (0..tiles).step_by(step) {
             let (tx, ty) = (t % (grid.nodes_x.max(2) - 1), t / (grid.nodes_x.max(2) - 1));
