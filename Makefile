@@ -21,11 +21,11 @@ test: deps
 test-firmware:
 	$(MAKE) -C firmware check FUZZ_SECONDS=20
 
-# The second run builds with the libgphoto2 camera backend and runs its tests (the rest of
-# the suite does not change with the feature).
+# The second run builds with the libgphoto2 camera backend and OpenCV and runs the tests that
+# need them (the rest of the suite does not change with the features).
 test-rust:
 	$(CARGO) test --release
-	$(CARGO) test --release --features gphoto2 gphoto
+	$(CARGO) test --release --features "gphoto2 opencv" -- gphoto opencv
 
 lint:
 	$(CARGO) fmt --check

@@ -13,6 +13,7 @@
 
 pub mod alloc;
 pub mod bench;
+pub mod calibration;
 pub mod capture;
 pub mod emulated;
 pub mod error;

@@ -119,6 +119,47 @@ impl SensorWindow {
     }
 }
 
+/// An 8-bit grayscale photograph (chessboard views): row-major, one byte per pixel.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct GrayImage {
+    pub width: usize,
+    pub height: usize,
+    pub data: Vec<u8>,
+}
+
+impl GrayImage {
+    /// Reads any image the `image` crate decodes (PNG, JPEG, TIFF) as 8-bit luminance.
+    pub fn load(path: &std::path::Path) -> Result<GrayImage> {
+        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        let decoded = image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(|e| Error::image(path, e))?
+            .decode()
+            .map_err(|e| Error::image(path, format!("cannot decode: {e}")))?
+            .into_luma8();
+        Ok(GrayImage {
+            width: decoded.width() as usize,
+            height: decoded.height() as usize,
+            data: decoded.into_raw(),
+        })
+    }
+
+    /// Writes an 8-bit grayscale PNG.
+    pub fn save_png(&self, path: &std::path::Path) -> Result<()> {
+        let buffer =
+            image::GrayImage::from_raw(self.width as u32, self.height as u32, self.data.clone())
+                .ok_or_else(|| Error::image(path, "image data does not match its size"))?;
+        let mut bytes = Vec::new();
+        buffer
+            .write_to(
+                &mut std::io::Cursor::new(&mut bytes),
+                image::ImageFormat::Png,
+            )
+            .map_err(|e| Error::image(path, e))?;
+        crate::fsutil::write_atomic(path, &bytes)
+    }
+}
+
 /// The three colour planes of one photograph, in linear units where 1.0 is the sensor's white
 /// level after black-level subtraction.
 #[derive(Clone, Debug)]

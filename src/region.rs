@@ -412,7 +412,11 @@ mod tests {
             exposure: 1.0,
             mask,
         };
-        solve(&input, &SolveOptions::default(), &Silent).unwrap()
+        let options = SolveOptions {
+            estimator: crate::solve::Estimator::LeastSquares,
+            ..SolveOptions::default()
+        };
+        solve(&input, &options, &Silent).unwrap()
     }
 
     #[test]

@@ -22,8 +22,8 @@ use crate::progress::{Progress, Silent};
 use crate::raw::Levels;
 use crate::rig::Rig;
 use crate::solve::{
-    self, LightSource, Method, NoiseModel, PixelStatus, Precision, SolveInput, SolveOptions,
-    SolveResult,
+    self, Estimator, LightSource, Method, NoiseModel, PixelStatus, Precision, SolveInput,
+    SolveOptions, SolveResult,
 };
 use crate::synth::{expose, Noise, Scene, SceneOptions, Sheen, Textile};
 
@@ -98,6 +98,7 @@ pub struct Variant {
 /// The variants every scene is solved with.
 pub fn variants() -> Vec<Variant> {
     let base = SolveOptions {
+        estimator: Estimator::LeastSquares,
         predict_error: false,
         ..SolveOptions::default()
     };
@@ -112,7 +113,20 @@ pub fn variants() -> Vec<Variant> {
         ..base.clone()
     };
     let tiles = Some(TILE_TOLERANCE_DEG);
-    vec![
+    // The robust estimators (exact kernel, f64), with the predicted error they rely on.
+    let estimators = Estimator::ALL
+        .into_iter()
+        .filter(|&e| e != Estimator::LeastSquares)
+        .map(|estimator| {
+            v(
+                &format!("{} f64 per-pixel (exact kernel)", estimator.name()),
+                SolveOptions {
+                    estimator,
+                    ..SolveOptions::default()
+                },
+            )
+        });
+    let mut all = vec![
         v("ls f64 per-pixel (exact kernel)", base.clone()),
         v(
             "svd f64 per-pixel",
@@ -123,7 +137,10 @@ pub fn variants() -> Vec<Variant> {
         ),
         v(
             "ls f64 per-pixel (exact kernel, predicted error)",
-            SolveOptions::default(),
+            SolveOptions {
+                predict_error: true,
+                ..base.clone()
+            },
         ),
         v(
             "ls f64 distant lights (exact kernel)",
@@ -140,7 +157,9 @@ pub fn variants() -> Vec<Variant> {
             "fast f32 tiled normal-only",
             streaming(Precision::F32, tiles, true),
         ),
-    ]
+    ];
+    all.extend(estimators);
+    all
 }
 
 /// The name of the variant the speed targets are measured on.

@@ -15,7 +15,9 @@ use psscan::pipeline::{self, DemoSummary, RegionJob, SolveJob};
 use psscan::raw::{DevelopOptions, Resolution};
 use psscan::region::{Background, Roi};
 use psscan::rig::Rig;
-use psscan::solve::{LightModel, Method, Precision, SolveOptions};
+use psscan::solve::{
+    Estimator, LightModel, Method, Precision, RobustOptions, SheenModel, SolveOptions,
+};
 use psscan::synth::{FrameEncoding, Sheen, SynthSpec};
 
 use progress::Bars;
@@ -179,6 +181,15 @@ struct SolveArgs {
 
 #[derive(Args, Clone)]
 struct SolveFlags {
+    /// Per-pixel estimator: ls (least squares), robust (reject shadowed and highlighted
+    /// lights everywhere), adaptive (least squares, robust only where the residual fails a
+    /// chi-square test against the sensor noise).
+    #[arg(long, value_enum, default_value_t = Estimator::Adaptive)]
+    estimator: Estimator,
+    /// Fit the velvet sheen lobe of seed 004 (eqs. 21-23) where the Lambertian model fails;
+    /// the lobe's shape: f0 (Fresnel at normal incidence), alpha (width), amplitude.
+    #[arg(long, num_args = 3, value_names = ["F0", "ALPHA", "AMPLITUDE"])]
+    sheen_fit: Option<Vec<f64>>,
     /// Least-squares method.
     #[arg(long, value_enum, default_value_t = MethodArg::Fast)]
     method: MethodArg,
@@ -272,6 +283,15 @@ impl SolveFlags {
                 },
                 tile_tolerance_deg: self.tile_tolerance,
                 normal_only: self.normal_only,
+                estimator: self.estimator,
+                robust: RobustOptions {
+                    sheen: self.sheen_fit.as_deref().map(|v| SheenModel {
+                        f0: [v[0]; 3],
+                        alpha: v[1],
+                        amplitude: v[2],
+                    }),
+                    ..RobustOptions::default()
+                },
                 ..SolveOptions::default()
             },
             maps: MapOptions {

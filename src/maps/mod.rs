@@ -1,6 +1,7 @@
 //! Everything derived from a solve, and the writers: normal maps (16-bit PNG in OpenGL or
 //! DirectX convention, float EXR), albedo (16-bit sRGB PNG, linear EXR), the confidence map
-//! (EXR: residual, predicted error, condition, lights used, status) and `report.json`.
+//! (EXR: residual, predicted error, condition, lights used, status, which fit: 0 least
+//! squares, 1 robust, 2 sheen) and `report.json`.
 
 pub mod encode;
 pub mod report;
@@ -115,6 +116,7 @@ pub fn write_maps(result: &SolveResult, dir: &Path, options: &MapOptions) -> Res
             h,
             result.status.iter().map(|&s| s as u8 as f32).collect(),
         )?;
+        let fit = Plane::from_vec(w, h, result.fit.iter().map(|&f| f as u8 as f32).collect())?;
         write::write_exr(
             &p,
             &[
@@ -123,6 +125,7 @@ pub fn write_maps(result: &SolveResult, dir: &Path, options: &MapOptions) -> Res
                 ("condition", &result.condition),
                 ("lights_used", &lights),
                 ("status", &status),
+                ("fit", &fit),
             ],
         )?;
         Ok((normal, albedo, p))

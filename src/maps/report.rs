@@ -9,7 +9,7 @@ use super::WrittenMaps;
 use crate::error::Result;
 use crate::eval::TruthComparison;
 use crate::fsutil::write_atomic;
-use crate::solve::{PixelStatus, SolveOptions, SolveResult};
+use crate::solve::{PixelFit, PixelStatus, SolveOptions, SolveResult};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct Report {
@@ -21,6 +21,13 @@ pub struct Report {
     pub options: SolveOptions,
     /// Pixel count per status (`solved`, `dark`, `saturated`, ...).
     pub pixels: BTreeMap<&'static str, usize>,
+    /// Solved pixels per fit (`least_squares`, `robust`, `sheen`).
+    pub fits: BTreeMap<&'static str, usize>,
+    /// Pixels the estimator ran the robust fit on (adaptive: those that failed the chi-square
+    /// test against the noise model).
+    pub escalated: usize,
+    /// The adaptive estimator found sheen and fitted the sheen model everywhere.
+    pub sheen_everywhere: bool,
     pub residual_mean: f64,
     pub predicted_normal_error_deg: Mean,
     /// Errors against ground truth, when the capture set has it (synthetic sets).
@@ -57,6 +64,10 @@ impl Report {
             .iter()
             .map(|&s| (s.name(), result.count(s)))
             .collect();
+        let fits = PixelFit::ALL
+            .iter()
+            .map(|&f| (f.name(), result.count_fit(f)))
+            .collect();
         let solved: Vec<usize> = (0..result.status.len())
             .filter(|&i| result.status[i] == PixelStatus::Solved)
             .collect();
@@ -77,6 +88,9 @@ impl Report {
             height: result.height,
             options: options.clone(),
             pixels,
+            fits,
+            escalated: result.escalated,
+            sheen_everywhere: result.sheen_everywhere,
             residual_mean,
             predicted_normal_error_deg: Mean {
                 mean: result.mean_predicted_error_deg(),

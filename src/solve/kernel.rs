@@ -4,10 +4,13 @@
 
 use nalgebra::{DMatrix, Matrix3, Vector3};
 
+use super::adaptive::ChiSquare;
 use super::lights::Illumination;
 use super::predict::expected_angle_error;
+use super::robust;
 use super::{
-    Method, NoiseModel, PixelStatus, SolveInput, SolveOptions, SolveResult, LUMINANCE_WEIGHTS,
+    Estimator, Method, NoiseModel, PixelFit, PixelStatus, SolveInput, SolveOptions, SolveResult,
+    LUMINANCE_WEIGHTS,
 };
 use crate::plane::Frames;
 
@@ -16,26 +19,30 @@ pub const MAX_LIGHTS: usize = 255;
 
 /// One light's usable measurement at one pixel, already divided by the light's intensity.
 #[derive(Clone, Copy)]
-struct Measurement {
+pub(super) struct Measurement {
     /// Unit direction toward the light.
-    l: Vector3<f64>,
+    pub l: Vector3<f64>,
     /// `I'` per colour channel: measured value over the white-surface signal.
-    rgb: [f64; 3],
+    pub rgb: [f64; 3],
     /// Luminance of `rgb`.
-    lum: f64,
+    pub lum: f64,
     /// Noise variance of `lum`.
-    var: f64,
+    pub var: f64,
+    /// The variance the chi-square test and the weighted fits use (`ChiSquare::prepare`).
+    pub test_var: f64,
 }
 
 /// Per-thread buffer reused across pixels so the inner loop does not allocate.
 pub struct Scratch {
     measurements: Vec<Measurement>,
+    robust: robust::Buffers,
 }
 
 impl Scratch {
     pub fn with_capacity(lights: usize) -> Self {
         Scratch {
             measurements: Vec::with_capacity(lights),
+            robust: robust::Buffers::default(),
         }
     }
 }
@@ -48,10 +55,18 @@ pub struct RowOut<'a> {
     pub(super) predicted: &'a mut [f32],
     pub(super) condition: &'a mut [f32],
     pub(super) lights: &'a mut [u8],
+    pub(super) fit: &'a mut [PixelFit],
     pub status: &'a mut [PixelStatus],
+    /// Pixels of this row that the robust fit was run on.
+    pub escalated: usize,
 }
 
 impl<'a> RowOut<'a> {
+    /// True when pixel `x` was solved by least squares over all its lights.
+    pub fn is_plain_least_squares(&self, x: usize) -> bool {
+        self.status[x] == PixelStatus::Solved && self.fit[x] == PixelFit::LeastSquares
+    }
+
     pub fn split(result: &'a mut SolveResult) -> Vec<RowOut<'a>> {
         let w = result.width.max(1);
         let [nx, ny, nz] = &mut result.normal;
@@ -67,6 +82,7 @@ impl<'a> RowOut<'a> {
         let mut condition = result.condition.data.chunks_mut(w);
         let mut lights = result.lights_used.chunks_mut(w);
         let mut status = result.status.chunks_mut(w);
+        let mut fit = result.fit.chunks_mut(w);
         (0..result.height)
             .map(|_| RowOut {
                 normal: [nx.next(), ny.next(), nz.next()].map(Option::unwrap),
@@ -76,19 +92,27 @@ impl<'a> RowOut<'a> {
                 condition: condition.next().unwrap(),
                 lights: lights.next().unwrap(),
                 status: status.next().unwrap(),
+                fit: fit.next().unwrap(),
+                escalated: 0,
             })
             .collect()
     }
 }
 
-/// The least-squares solution at one pixel, before it is turned into outputs.
-struct Fit {
-    /// Scaled normals: luminance first, then R, G, B.
-    n_lum: Vector3<f64>,
-    n_rgb: [Vector3<f64>; 3],
-    /// `(L^T L)^-1`, for the predicted error.
-    a_inv: Matrix3<f64>,
-    condition: f64,
+/// The solution at one pixel, before it is turned into outputs.
+pub(super) struct Fit {
+    /// Scaled normals (unit normal times albedo): luminance first, then R, G, B.
+    pub n_lum: Vector3<f64>,
+    pub n_rgb: [Vector3<f64>; 3],
+    /// `(L^T L)^-1`, for the predicted error; `(L^T W L)^-1` when `weighted`.
+    pub a_inv: Matrix3<f64>,
+    /// Weighted least squares with `W = 1 / variance`: `a_inv` is then the covariance of
+    /// `n_lum` itself.
+    pub weighted: bool,
+    pub condition: f64,
+    /// RMS luminance residual when the fit's model is not `n_lum . l` (the sheen fit).
+    pub residual: Option<f64>,
+    pub kind: PixelFit,
 }
 
 pub struct Kernel<'a> {
@@ -98,6 +122,9 @@ pub struct Kernel<'a> {
     inv_exposure: f64,
     dark_threshold: f64,
     options: &'a SolveOptions,
+    chi_square: ChiSquare,
+    /// Adaptive's second pass on a scene that shows sheen: fit the sheen model everywhere.
+    force_sheen: bool,
 }
 
 /// Why measurements were dropped at a pixel, to name the reason when too few remain.
@@ -138,6 +165,16 @@ impl<'a> Kernel<'a> {
                     .luminance_floor_variance(&LUMINANCE_WEIGHTS)
                     .sqrt(),
             options,
+            chi_square: ChiSquare::new(&options.robust),
+            force_sheen: false,
+        }
+    }
+
+    /// The same kernel fitting the sheen model at every pixel it solves.
+    pub fn forcing_sheen(self) -> Self {
+        Kernel {
+            force_sheen: true,
+            ..self
         }
     }
 
@@ -151,21 +188,60 @@ impl<'a> Kernel<'a> {
         x: usize,
     ) {
         let dropped = self.gather(i, point, &mut scratch.measurements);
-        let measurements = &scratch.measurements;
+        let Scratch {
+            measurements,
+            robust: buffers,
+        } = scratch;
         row.lights[x] = measurements.len() as u8;
         if measurements.len() < 3 {
             row.status[x] = dropped.status();
             return;
         }
+        let Some(fit) = self.least_squares(measurements) else {
+            row.status[x] = PixelStatus::Degenerate;
+            return;
+        };
+        if self.options.estimator != Estimator::LeastSquares {
+            self.chi_square.prepare(measurements);
+        }
+        let escalate = match self.options.estimator {
+            Estimator::LeastSquares => false,
+            Estimator::Robust => true,
+            Estimator::Adaptive => {
+                self.force_sheen || !self.chi_square.accepts(measurements, &fit.n_lum)
+            }
+        };
+        let fit = if escalate {
+            row.escalated += 1;
+            let context = robust::Context {
+                kernel: self,
+                view: self.illumination.view(point),
+                force_sheen: self.force_sheen || self.options.estimator == Estimator::Robust,
+            };
+            robust::refine(&context, measurements, buffers, fit)
+        } else {
+            fit
+        };
+        row.lights[x] = measurements.len() as u8;
+        self.write_outputs(&fit, measurements, row, x);
+    }
+
+    /// Plain least squares over `measurements` with the options' method; `None` when the light
+    /// matrix is singular or worse conditioned than allowed.
+    pub(super) fn least_squares(&self, measurements: &[Measurement]) -> Option<Fit> {
         let fit = match self.options.method {
             Method::NormalEquations => fit_normal_equations(measurements),
             Method::Svd => fit_svd(measurements),
         };
-        let Some(fit) = fit.filter(|f| f.condition <= self.options.max_condition) else {
-            row.status[x] = PixelStatus::Degenerate;
-            return;
-        };
-        self.write_outputs(&fit, measurements, row, x);
+        fit.filter(|f| f.condition <= self.options.max_condition)
+    }
+
+    pub(super) fn options(&self) -> &SolveOptions {
+        self.options
+    }
+
+    pub(super) fn chi_square(&self) -> &ChiSquare {
+        &self.chi_square
     }
 
     /// Collects the usable measurements at pixel `i`; returns why the others were dropped.
@@ -215,6 +291,7 @@ impl<'a> Kernel<'a> {
                 rgb,
                 lum,
                 var,
+                test_var: var,
             });
         }
         dropped
@@ -233,17 +310,23 @@ impl<'a> Kernel<'a> {
         } else {
             fit.n_rgb.map(|nc| nc.dot(&n))
         };
-        let sum_sq: f64 = measurements
-            .iter()
-            .map(|m| (m.lum - fit.n_lum.dot(&m.l)).powi(2))
-            .sum();
-        let residual = (sum_sq / measurements.len() as f64).sqrt();
+        let residual = fit.residual.unwrap_or_else(|| {
+            let sum_sq: f64 = measurements
+                .iter()
+                .map(|m| (m.lum - fit.n_lum.dot(&m.l)).powi(2))
+                .sum();
+            (sum_sq / measurements.len() as f64).sqrt()
+        });
         let predicted = if self.options.predict_error {
             let mut noise = Matrix3::zeros();
             for m in measurements {
                 noise += m.l * m.l.transpose() * m.var;
             }
-            let cov = fit.a_inv * noise * fit.a_inv;
+            let cov = if fit.weighted {
+                fit.a_inv
+            } else {
+                fit.a_inv * noise * fit.a_inv
+            };
             expected_angle_error(&fit.n_lum, &cov).to_degrees()
         } else {
             0.0
@@ -262,12 +345,13 @@ impl<'a> Kernel<'a> {
         row.residual[x] = residual as f32;
         row.predicted[x] = predicted as f32;
         row.condition[x] = fit.condition as f32;
+        row.fit[x] = fit.kind;
         row.status[x] = PixelStatus::Solved;
     }
 }
 
 /// Least squares through the normal equations, inverted in closed form.
-fn fit_normal_equations(measurements: &[Measurement]) -> Option<Fit> {
+pub(super) fn fit_normal_equations(measurements: &[Measurement]) -> Option<Fit> {
     let mut a = Matrix3::zeros();
     let mut b_lum = Vector3::zeros();
     let mut b_rgb = [Vector3::zeros(); 3];
@@ -286,6 +370,9 @@ fn fit_normal_equations(measurements: &[Measurement]) -> Option<Fit> {
         n_rgb: b_rgb.map(|b| a_inv * b),
         a_inv,
         condition,
+        residual: None,
+        kind: PixelFit::LeastSquares,
+        weighted: false,
     })
 }
 
@@ -318,5 +405,8 @@ fn fit_svd(measurements: &[Measurement]) -> Option<Fit> {
         n_rgb: [column(1), column(2), column(3)],
         a_inv,
         condition: (norm_a * norm_a_inv).sqrt(),
+        residual: None,
+        kind: PixelFit::LeastSquares,
+        weighted: false,
     })
 }

@@ -44,6 +44,8 @@ pub struct Illumination<'a> {
     /// Pixel to sample-plane mapping (rigs only).
     mapper: Option<PlaneMapper<'a>>,
     window: SensorWindow,
+    /// The camera's centre (rigs); `None`: an orthographic camera looking down +z.
+    camera: Option<Vector3<f64>>,
 }
 
 struct LedModel {
@@ -107,6 +109,7 @@ impl<'a> Illumination<'a> {
                 .collect(),
             mapper: Some(mapper),
             window,
+            camera: Some(rig.camera.centre()),
         })
     }
 
@@ -149,6 +152,7 @@ impl<'a> Illumination<'a> {
             distant,
             mapper: None,
             window,
+            camera: None,
         })
     }
 
@@ -180,6 +184,15 @@ impl<'a> Illumination<'a> {
                 let (u, v) = self.window.to_sensor(x, y);
                 mapper.map(u, v)
             }
+        }
+    }
+
+    /// Unit direction from `point` toward the camera (the view vector of a sheen model).
+    #[inline]
+    pub fn view(&self, point: &Vector3<f64>) -> Vector3<f64> {
+        match self.camera {
+            Some(centre) => (centre - point).normalize(),
+            None => Vector3::z(),
         }
     }
 

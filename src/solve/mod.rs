@@ -8,10 +8,13 @@
 //! shadow reads zero whatever the normal, so it would only bias the fit). Pixels left with
 //! fewer than three lights, or with lights too close to coplanar, are flagged, never NaN.
 
+mod adaptive;
 mod fast;
 mod kernel;
 mod lights;
 mod predict;
+mod robust;
+mod sheen;
 pub mod tiles;
 
 use nalgebra::Vector3;
@@ -23,6 +26,8 @@ use crate::progress::Progress;
 
 pub use lights::{Illumination, LightModel, LightSource};
 pub use predict::{elliptic_e, expected_angle_error, NoiseModel};
+pub use robust::RobustOptions;
+pub use sheen::SheenModel;
 
 /// Rec. 709 luminance weights: the grayscale the normal is solved from (seed eq. 26).
 pub const LUMINANCE_WEIGHTS: [f64; 3] = [0.2126, 0.7152, 0.0722];
@@ -50,10 +55,86 @@ pub enum Precision {
     F32,
 }
 
+/// Which estimator solves each pixel.
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+    Default,
+)]
+pub enum Estimator {
+    /// Plain least squares over every usable light (dark, saturated and non-finite
+    /// measurements are always left out).
+    #[serde(rename = "ls")]
+    #[value(name = "ls")]
+    LeastSquares,
+    /// The robust fit (outlier rejection, then the sheen model where configured) at every
+    /// pixel. See `robust`.
+    #[serde(rename = "robust")]
+    #[value(name = "robust")]
+    Robust,
+    /// Least squares everywhere; the robust fit only where the least-squares residual fails a
+    /// chi-square test against the noise model. See `adaptive`.
+    #[default]
+    #[serde(rename = "adaptive")]
+    #[value(name = "adaptive")]
+    Adaptive,
+}
+
+impl Estimator {
+    pub const ALL: [Estimator; 3] = [
+        Estimator::LeastSquares,
+        Estimator::Robust,
+        Estimator::Adaptive,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Estimator::LeastSquares => "ls",
+            Estimator::Robust => "robust",
+            Estimator::Adaptive => "adaptive",
+        }
+    }
+}
+
+/// Which fit produced a pixel's solution (the confidence map's `fit` channel).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, Default)]
+#[serde(rename_all = "snake_case")]
+#[repr(u8)]
+pub enum PixelFit {
+    /// Not solved, or least squares over every usable light.
+    #[default]
+    LeastSquares = 0,
+    /// Least squares after rejecting outlying lights (shadows, highlights).
+    Robust = 1,
+    /// The sheen model fitted with the normal (seed eqs. 21-23).
+    Sheen = 2,
+}
+
+impl PixelFit {
+    pub const ALL: [PixelFit; 3] = [PixelFit::LeastSquares, PixelFit::Robust, PixelFit::Sheen];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            PixelFit::LeastSquares => "least_squares",
+            PixelFit::Robust => "robust",
+            PixelFit::Sheen => "sheen",
+        }
+    }
+}
+
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct SolveOptions {
     pub light_model: LightModel,
     pub method: Method,
+    pub estimator: Estimator,
+    /// Tuning of the robust fit (used by `Estimator::Robust` and `Estimator::Adaptive`).
+    pub robust: RobustOptions,
     /// A measurement whose luminance is at or below this many standard deviations of the
     /// sensor's noise floor counts as dark (shadowed) and is left out.
     pub dark_threshold_sigma: f64,
@@ -73,7 +154,7 @@ pub struct SolveOptions {
 }
 
 impl SolveOptions {
-    /// Whether the streaming kernel solves the pixels where every light is usable.
+    /// Whether the streaming kernel (least squares only) solves the pixels.
     pub fn streaming(&self) -> bool {
         self.precision == Precision::F32 || self.tile_tolerance_deg.is_some()
     }
@@ -84,6 +165,8 @@ impl Default for SolveOptions {
         SolveOptions {
             light_model: LightModel::Near,
             method: Method::NormalEquations,
+            estimator: Estimator::default(),
+            robust: RobustOptions::default(),
             dark_threshold_sigma: 3.0,
             max_condition: 1e3,
             predict_error: true,
@@ -165,6 +248,14 @@ pub struct SolveResult {
     pub condition: Plane,
     pub lights_used: Vec<u8>,
     pub status: Vec<PixelStatus>,
+    /// Which fit solved each pixel; `LeastSquares` where not solved.
+    pub fit: Vec<PixelFit>,
+    /// Pixels the robust fit ran on: for the adaptive estimator those whose least-squares fit
+    /// failed the chi-square test (first pass), for the robust estimator all.
+    pub escalated: usize,
+    /// Adaptive estimator: the first pass found sheen, and a second pass fitted the sheen model
+    /// at every pixel.
+    pub sheen_everywhere: bool,
 }
 
 impl SolveResult {
@@ -193,7 +284,19 @@ impl SolveResult {
             condition: plane(0.0),
             lights_used: vec![0; n],
             status,
+            fit: vec![PixelFit::LeastSquares; n],
+            escalated: 0,
+            sheen_everywhere: false,
         }
+    }
+
+    /// Solved pixels per fit.
+    pub fn count_fit(&self, fit: PixelFit) -> usize {
+        self.status
+            .iter()
+            .zip(&self.fit)
+            .filter(|(s, f)| **s == PixelStatus::Solved && **f == fit)
+            .count()
     }
 
     pub fn count(&self, status: PixelStatus) -> usize {
@@ -277,11 +380,41 @@ pub fn solve(
         progress.end();
         return Ok(result);
     }
-    let rows = kernel::RowOut::split(&mut result);
+    result.escalated = solve_pass(input, &kernel, &illumination, &mut result, progress, false);
+    progress.end();
+    if needs_sheen_everywhere(options, &result) {
+        // The sheen lobe brightens many lights smoothly, and part of its bias on the normal is
+        // indistinguishable from a Lambertian tilt at a single pixel: where the scene shows
+        // sheen, every pixel gets the sheen fit.
+        let kernel = kernel.forcing_sheen();
+        progress.begin("sheen", height as u64);
+        solve_pass(input, &kernel, &illumination, &mut result, progress, true);
+        result.sheen_everywhere = true;
+        progress.end();
+    }
+    Ok(result)
+}
+
+/// Solves the pixels of the mask (only those least squares solved, with `again`); returns how
+/// many were escalated to the robust fit.
+fn solve_pass(
+    input: &SolveInput,
+    kernel: &kernel::Kernel,
+    illumination: &Illumination,
+    result: &mut SolveResult,
+    progress: &dyn Progress,
+    again: bool,
+) -> usize {
+    let width = result.width;
+    let escalated = std::sync::atomic::AtomicUsize::new(0);
+    let rows = kernel::RowOut::split(result);
     rows.into_par_iter().enumerate().for_each(|(y, mut row)| {
         let mut scratch = kernel::Scratch::with_capacity(illumination.len());
         for x in 0..width {
             if input.mask.is_some_and(|m| !m.data[y * width + x]) {
+                continue;
+            }
+            if again && !row.is_plain_least_squares(x) {
                 continue;
             }
             match illumination.point(x, y) {
@@ -289,10 +422,22 @@ pub fn solve(
                 None => row.status[x] = PixelStatus::Degenerate,
             }
         }
+        escalated.fetch_add(row.escalated, std::sync::atomic::Ordering::Relaxed);
         progress.advance(1);
     });
-    progress.end();
-    Ok(result)
+    escalated.into_inner()
+}
+
+/// Adaptive only: true when a sheen model is configured and more of the solved pixels needed
+/// it in the first pass than `sheen_scene_fraction`.
+fn needs_sheen_everywhere(options: &SolveOptions, result: &SolveResult) -> bool {
+    if options.estimator != Estimator::Adaptive || options.robust.sheen.is_none() {
+        return false;
+    }
+    let solved = result.count(PixelStatus::Solved);
+    solved > 0
+        && result.count_fit(PixelFit::Sheen) as f64
+            > options.robust.sheen_scene_fraction * solved as f64
 }
 
 /// The streaming kernel at the requested precision and coefficient source.
@@ -354,6 +499,13 @@ fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illuminatio
             )));
         }
     }
+    if options.streaming() && options.estimator != Estimator::LeastSquares {
+        return Err(Error::Invalid(format!(
+            "the streaming kernel (--precision f32, --tile-tolerance) is plain least squares: \
+             use --estimator ls, or drop those options for the {} estimator",
+            options.estimator.name()
+        )));
+    }
     if options.streaming() && options.method == Method::Svd {
         return Err(Error::Invalid(
             "the SVD method is per pixel in f64 only: drop --precision f32 and --tile-tolerance"
@@ -368,7 +520,7 @@ fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illuminatio
             "max_condition must exceed 1 and dark_threshold_sigma must be >= 0".into(),
         ));
     }
-    Ok(())
+    options.robust.validate()
 }
 
 #[cfg(test)]

@@ -23,11 +23,19 @@ fn run(rig: &Rig, frames: &Frames, options: &SolveOptions, mask: Option<&Mask>) 
     solve(&input, options, &Silent).unwrap()
 }
 
+/// Plain least squares, exact kernel: what the streaming kernel must reproduce.
+fn exact_ls() -> SolveOptions {
+    SolveOptions {
+        estimator: Estimator::LeastSquares,
+        ..SolveOptions::default()
+    }
+}
+
 fn streaming(precision: Precision, tiles: Option<f64>) -> SolveOptions {
     SolveOptions {
         precision,
         tile_tolerance_deg: tiles,
-        ..SolveOptions::default()
+        ..exact_ls()
     }
 }
 
@@ -50,7 +58,7 @@ fn f64_streaming_kernel_reproduces_the_exact_kernel() {
     let rig = Rig::default_rig();
     let (_, frames) = render_scene(&rig, SceneKind::Shadows, MP, &Silent).unwrap();
     let frames = damaged(frames);
-    let exact = run(&rig, &frames, &SolveOptions::default(), None);
+    let exact = run(&rig, &frames, &exact_ls(), None);
     let fast = run(&rig, &frames, &streaming(Precision::F64, None), None);
     assert_eq!(fast.status, exact.status);
     assert_eq!(fast.lights_used, exact.lights_used);
@@ -78,7 +86,7 @@ fn f64_streaming_kernel_reproduces_the_exact_kernel() {
 fn f32_kernel_stays_within_single_precision_round_off() {
     let rig = Rig::default_rig();
     let (_, frames) = render_scene(&rig, SceneKind::Sheen, MP, &Silent).unwrap();
-    let exact = run(&rig, &frames, &SolveOptions::default(), None);
+    let exact = run(&rig, &frames, &exact_ls(), None);
     let fast = run(&rig, &frames, &streaming(Precision::F32, None), None);
     assert_eq!(fast.status, exact.status);
     // Forward error of a least-squares solve: ~ condition(A) * K * eps per component.
@@ -93,7 +101,7 @@ fn f32_kernel_stays_within_single_precision_round_off() {
 fn tiled_coefficients_cost_less_than_their_tolerance() {
     let rig = Rig::default_rig();
     let (_, frames) = render_scene(&rig, SceneKind::Lambertian, MP, &Silent).unwrap();
-    let exact = run(&rig, &frames, &SolveOptions::default(), None);
+    let exact = run(&rig, &frames, &exact_ls(), None);
     for tolerance in [0.01, 0.05] {
         let tiled = run(
             &rig,
@@ -133,7 +141,7 @@ fn normal_only_solves_the_luminance_alone() {
     }
     let exact_options = SolveOptions {
         normal_only: true,
-        ..SolveOptions::default()
+        ..exact_ls()
     };
     let exact = run(&rig, &frames, &exact_options, None);
     let (max, _) = deviation_deg(&exact, &full);
@@ -172,4 +180,23 @@ fn pixels_outside_the_mask_are_not_touched() {
             }
         }
     }
+}
+
+#[test]
+fn streaming_options_need_the_least_squares_estimator() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::Lambertian, 0.01, &Silent).unwrap();
+    let input = SolveInput {
+        frames: &frames,
+        lights: LightSource::Rig(&rig),
+        noise: bench_noise(&rig),
+        exposure: 1.0,
+        mask: None,
+    };
+    let options = SolveOptions {
+        estimator: Estimator::Adaptive,
+        ..streaming(Precision::F32, None)
+    };
+    let err = solve(&input, &options, &Silent).unwrap_err().to_string();
+    assert!(err.contains("--estimator ls"), "{err}");
 }

@@ -5,6 +5,7 @@
 pub mod brdf;
 mod render;
 pub mod sensor;
+pub mod targets;
 pub mod textile;
 
 use serde::{Deserialize, Serialize};

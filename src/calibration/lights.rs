@@ -1,0 +1,273 @@
+//! Each LED's 3-D position and intensity, fitted to the white sheet. The model is the one the
+//! solve uses: a point source whose light on the flat sheet at `p` is
+//! `power * beam(angle off the axis) * cos(incidence) / r^2`, the beam aimed at the LED's aim
+//! point. Starting from the hand-measured positions in rig.toml, Levenberg-Marquardt moves
+//! every LED (x, y, z, log power) to match the sheet's measured intensities block by block;
+//! the intensity and the directions are refined together, each iteration's change reported,
+//! until the positions stop moving. Colour comes last: per channel, the least-squares scale
+//! of the fitted shape.
+
+use nalgebra::{Matrix4, Vector3, Vector4};
+use serde::{Deserialize, Serialize};
+
+use super::whitesheet::SheetLight;
+use crate::error::{Error, Result};
+use crate::progress::Progress;
+use crate::rig::{Led, Rig};
+
+/// Positions that move less than this in an iteration have converged (m).
+pub const CONVERGED_STEP_M: f64 = 1e-5;
+const MAX_ITERATIONS: usize = 50;
+
+/// One iteration of the joint fit.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Iteration {
+    pub iteration: usize,
+    /// Largest position change of any LED in this iteration (mm).
+    pub max_step_mm: f64,
+    /// Largest power change of any LED (relative).
+    pub max_power_change: f64,
+    /// RMS relative residual over all lights and blocks after the iteration.
+    pub rms_relative_residual: f64,
+}
+
+/// One LED's result.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct FittedLed {
+    pub start_m: [f64; 3],
+    pub position_m: [f64; 3],
+    /// Distance between the hand measurement and the fit (mm).
+    pub moved_mm: f64,
+    /// Linear signal of a white surface at 1 m on the axis, per channel (what the solve
+    /// divides by).
+    pub rgb_power: [f64; 3],
+    pub rms_relative_residual: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LightFit {
+    pub leds: Vec<FittedLed>,
+    pub iterations: Vec<Iteration>,
+    pub converged: bool,
+}
+
+impl LightFit {
+    /// `rig` with its LEDs where the fit put them, with the fitted powers and colours.
+    pub fn apply(&self, rig: &Rig) -> Rig {
+        let mut out = rig.clone();
+        for (led, fit) in out.leds.iter_mut().zip(&self.leds) {
+            led.position_m = fit.position_m;
+            // The rig stores power x colour x the sensor's channel gain; keep green's colour 1.
+            let gain = rig.sensor.channel_gain;
+            led.power = fit.rgb_power[1] / gain[1];
+            led.color = std::array::from_fn(|c| fit.rgb_power[c] / (led.power * gain[c]));
+        }
+        out
+    }
+}
+
+/// The white-surface luminance the point-source model predicts at `point`.
+fn model(led: &Led, point: &Vector3<f64>) -> f64 {
+    let s = led.sample_at(point);
+    s.falloff * s.direction.z.max(0.0)
+}
+
+/// Sum of squared relative residuals of `led` (with `power` standing for the luminance
+/// power) against the blocks' luminance.
+fn cost(led: &Led, points: &[Vector3<f64>], values: &[f64]) -> f64 {
+    points
+        .iter()
+        .zip(values)
+        .map(|(p, v)| (model(led, p) / v - 1.0).powi(2))
+        .sum()
+}
+
+fn with_params(base: &Led, q: &Vector4<f64>) -> Led {
+    Led {
+        position_m: [q[0], q[1], q[2]],
+        power: q[3].exp(),
+        ..base.clone()
+    }
+}
+
+/// One Levenberg-Marquardt step for one LED; returns the new parameters and the new damping.
+fn lm_step(
+    base: &Led,
+    q: &Vector4<f64>,
+    lambda: f64,
+    points: &[Vector3<f64>],
+    values: &[f64],
+) -> (Vector4<f64>, f64) {
+    let led = with_params(base, q);
+    let current = cost(&led, points, values);
+    let mut jtj = Matrix4::zeros();
+    let mut jtr = Vector4::zeros();
+    let h = [1e-6, 1e-6, 1e-6, 1e-6];
+    let shifted: Vec<Led> = (0..4)
+        .map(|j| {
+            let mut d = *q;
+            d[j] += h[j];
+            with_params(base, &d)
+        })
+        .collect();
+    for (p, v) in points.iter().zip(values) {
+        let m = model(&led, p);
+        let r = m / v - 1.0;
+        let g = Vector4::from_fn(|j, _| (model(&shifted[j], p) - m) / v / h[j]);
+        jtj += g * g.transpose();
+        jtr += g * r;
+    }
+    let mut lambda = lambda;
+    for _ in 0..12 {
+        let mut a = jtj;
+        for j in 0..4 {
+            a[(j, j)] *= 1.0 + lambda;
+        }
+        if let Some(step) = a.lu().solve(&(-jtr)) {
+            let trial = q + step;
+            if cost(&with_params(base, &trial), points, values) < current {
+                return (trial, (lambda / 10.0).max(1e-9));
+            }
+        }
+        lambda *= 10.0;
+    }
+    (*q, lambda)
+}
+
+/// Fits every LED of `rig` (positions as measured by hand, aims and beams as given) to the
+/// white sheet's measured intensities.
+pub fn fit(rig: &Rig, sheet: &[SheetLight], progress: &dyn Progress) -> Result<LightFit> {
+    if sheet.len() != rig.leds.len() {
+        return Err(Error::Invalid(format!(
+            "{} white-sheet lights for {} LEDs",
+            sheet.len(),
+            rig.leds.len()
+        )));
+    }
+    // Per LED: the usable blocks' points and luminances.
+    let data: Vec<(Vec<Vector3<f64>>, Vec<f64>)> = sheet
+        .iter()
+        .map(|s| {
+            let lum = s.luminance();
+            s.points
+                .iter()
+                .zip(lum)
+                .filter(|(_, l)| l.is_finite() && *l > 0.0)
+                .map(|(p, l)| (*p, l))
+                .unzip()
+        })
+        .collect();
+    for (k, (points, _)) in data.iter().enumerate() {
+        if points.len() < 16 {
+            return Err(Error::Invalid(format!(
+                "LED {k}: only {} usable white-sheet blocks (saturated or dark); need 16",
+                points.len()
+            )));
+        }
+    }
+    // Start: hand positions, and the power that matches the sheet's mean with them.
+    let mut params: Vec<Vector4<f64>> = rig
+        .leds
+        .iter()
+        .zip(&data)
+        .map(|(led, (points, values))| {
+            let unit = Led {
+                power: 1.0,
+                ..led.clone()
+            };
+            let ratio: f64 = points
+                .iter()
+                .zip(values)
+                .map(|(p, v)| v / model(&unit, p))
+                .sum::<f64>()
+                / points.len() as f64;
+            Vector4::new(
+                led.position_m[0],
+                led.position_m[1],
+                led.position_m[2],
+                ratio.ln(),
+            )
+        })
+        .collect();
+    let mut lambdas = vec![1e-3; rig.leds.len()];
+    let mut iterations = Vec::new();
+    let mut converged = false;
+    progress.begin("lights", MAX_ITERATIONS as u64);
+    for iteration in 1..=MAX_ITERATIONS {
+        let mut max_step: f64 = 0.0;
+        let mut max_power: f64 = 0.0;
+        for k in 0..rig.leds.len() {
+            let (points, values) = &data[k];
+            let (next, lambda) = lm_step(&rig.leds[k], &params[k], lambdas[k], points, values);
+            let step = (next.fixed_rows::<3>(0) - params[k].fixed_rows::<3>(0)).norm();
+            max_step = max_step.max(step);
+            max_power = max_power.max((next[3] - params[k][3]).abs());
+            params[k] = next;
+            lambdas[k] = lambda;
+        }
+        let rms = rms_residual(rig, &params, &data);
+        iterations.push(Iteration {
+            iteration,
+            max_step_mm: max_step * 1e3,
+            max_power_change: max_power.exp_m1(),
+            rms_relative_residual: rms,
+        });
+        progress.advance(1);
+        if max_step < CONVERGED_STEP_M {
+            converged = true;
+            break;
+        }
+    }
+    progress.end();
+    let leds = rig
+        .leds
+        .iter()
+        .zip(&params)
+        .zip(sheet)
+        .zip(&data)
+        .map(|(((led, q), s), (points, values))| {
+            let fitted = with_params(led, q);
+            FittedLed {
+                start_m: led.position_m,
+                position_m: fitted.position_m,
+                moved_mm: (fitted.position() - led.position()).norm() * 1e3,
+                rgb_power: channel_powers(&fitted, s),
+                rms_relative_residual: (cost(&fitted, points, values) / points.len() as f64).sqrt(),
+            }
+        })
+        .collect();
+    Ok(LightFit {
+        leds,
+        iterations,
+        converged,
+    })
+}
+
+fn rms_residual(rig: &Rig, params: &[Vector4<f64>], data: &[(Vec<Vector3<f64>>, Vec<f64>)]) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for (k, (points, values)) in data.iter().enumerate() {
+        sum += cost(&with_params(&rig.leds[k], &params[k]), points, values);
+        n += points.len();
+    }
+    (sum / n as f64).sqrt()
+}
+
+/// Per channel, the power that best scales the fitted LED's shape to the sheet (least
+/// squares), in the rig's units (signal of a white surface at 1 m on axis).
+fn channel_powers(led: &Led, sheet: &SheetLight) -> [f64; 3] {
+    let unit = Led {
+        power: 1.0,
+        ..led.clone()
+    };
+    std::array::from_fn(|c| {
+        let (mut num, mut den) = (0.0, 0.0);
+        for (p, v) in sheet.points.iter().zip(&sheet.rgb) {
+            if v[c].is_finite() {
+                let m = model(&unit, p);
+                num += m * v[c];
+                den += m * m;
+            }
+        }
+        num / den
+    })
+}

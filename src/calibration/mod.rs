@@ -1,0 +1,10 @@
+//! Calibration of the rig from photographs of targets (DESIGN.md, "calibration"): camera
+//! intrinsics and the table's pose (OpenCV, feature `opencv`), the gray chart's white balance
+//! and linearity, the white sheet's per-pixel light intensity, and each LED's position fitted
+//! to the white sheet; everything written as a bundle that captures and solves cite.
+
+pub mod camera;
+pub mod cv;
+pub mod lights;
+pub mod table;
+pub mod whitesheet;

@@ -1,0 +1,386 @@
+//! The robust fit: least squares that rejects the lights that do not fit the rest (a thread's
+//! cast shadow reads far below the Lambertian prediction, a highlight far above), then, where
+//! the kept lights still disagree with a Lambertian surface more than the sensor noise allows,
+//! the sheen model of seed 004 (see `sheen`).
+//!
+//! Rejection is backward elimination by the studentised residual: with `L` the kept lights'
+//! matrix, `h_k = l_k^T (L^T L)^-1 l_k` is light `k`'s leverage, and `r_k / (s_k sqrt(1 - h_k))`
+//! is its residual in units of its own standard deviation under the noise model. The light
+//! furthest out is dropped and the rest refitted, until no light is an outlier at
+//! `outlier_sigma` or only `max(3, (1 - max_rejected_fraction) m)` lights are left. Lights
+//! that agree are all kept, so on clean data the robust fit is least squares.
+//!
+//! Why this scheme (measured, see README "Estimators"): thresholding the darkest and brightest
+//! readings drops good lights wherever the normal tilts toward one side of the rig, and
+//! iteratively reweighted least squares spreads a shadow's weight over every light; removing
+//! one light at a time by its own noise-normalised residual keeps the noise-optimal fit
+//! wherever the data allow it.
+
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::adaptive::ChiSquare;
+use super::kernel::{fit_normal_equations, Fit, Kernel, Measurement};
+use super::sheen::{self, SheenModel};
+use super::PixelFit;
+use crate::error::{Error, Result};
+
+/// Tuning of the robust fit and of the adaptive estimator's escalation test.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RobustOptions {
+    /// The chi-square test of a fit against the noise model rejects at this many standard
+    /// deviations (of the normal distribution, 3 = a false alarm on 0.13 % of clean pixels).
+    pub significance_sigma: f64,
+    /// A light whose studentised residual exceeds this many standard deviations is an outlier.
+    pub outlier_sigma: f64,
+    /// At most this fraction of a pixel's usable lights may be rejected (3 are always kept).
+    pub max_rejected_fraction: f64,
+    /// Model error of real surfaces, as a fraction of the signal, added in quadrature to the
+    /// sensor noise in both tests (0: the noise model alone decides).
+    pub relative_model_error: f64,
+    /// The sheen lobe to fit with the normal where rejecting lights does not explain the data;
+    /// `None`: no sheen fit.
+    pub sheen: Option<SheenModel>,
+    /// Adaptive estimator: when the sheen fit solved more than this fraction of the pixels in
+    /// the first pass, the scene shows sheen and a second pass fits it at every pixel. 1 %
+    /// is several times the chi-square test's false alarms on Lambertian scenes.
+    pub sheen_scene_fraction: f64,
+}
+
+impl Default for RobustOptions {
+    fn default() -> Self {
+        RobustOptions {
+            significance_sigma: 3.0,
+            outlier_sigma: 4.0,
+            max_rejected_fraction: 0.5,
+            relative_model_error: 0.0,
+            sheen: None,
+            sheen_scene_fraction: 0.01,
+        }
+    }
+}
+
+impl RobustOptions {
+    /// Rejects settings that have no meaning (a clear error rather than a silent default).
+    pub fn validate(&self) -> Result<()> {
+        let finite = |v: f64| v.is_finite();
+        let sigmas_ok = finite(self.significance_sigma)
+            && self.outlier_sigma > 0.0
+            && finite(self.outlier_sigma);
+        if !sigmas_ok {
+            return Err(Error::Invalid(format!(
+                "robust significance_sigma must be finite and outlier_sigma positive, got {} and {}",
+                self.significance_sigma, self.outlier_sigma
+            )));
+        }
+        if !(0.0..1.0).contains(&self.max_rejected_fraction) {
+            return Err(Error::Invalid(format!(
+                "robust max_rejected_fraction must be in [0, 1), got {}",
+                self.max_rejected_fraction
+            )));
+        }
+        if !(self.relative_model_error >= 0.0 && finite(self.relative_model_error)) {
+            return Err(Error::Invalid(format!(
+                "robust relative_model_error must be >= 0, got {}",
+                self.relative_model_error
+            )));
+        }
+        match &self.sheen {
+            Some(sheen) => sheen.validate(),
+            None => Ok(()),
+        }
+    }
+}
+
+/// What the robust fit needs from the pixel besides its measurements.
+pub(super) struct Context<'a> {
+    pub kernel: &'a Kernel<'a>,
+    /// Unit vector from the pixel's point toward the camera.
+    pub view: Vector3<f64>,
+    /// Fit the sheen model (when configured) even where the Lambertian fit passes the test.
+    pub force_sheen: bool,
+}
+
+/// Per-thread buffers for the robust fit, reused across pixels.
+#[derive(Default)]
+pub(super) struct Buffers {
+    /// The usable lights before rejection.
+    original: Vec<Measurement>,
+    /// The lights the darker-only pass keeps.
+    darker: Vec<Measurement>,
+}
+
+/// True when `n_lum` predicts a positive reading for every light.
+fn predicts_light(measurements: &[Measurement], n_lum: &Vector3<f64>) -> bool {
+    measurements.iter().all(|m| n_lum.dot(&m.l) > 0.0)
+}
+
+/// Which lights a rejection pass may drop.
+#[derive(Clone, Copy, PartialEq)]
+enum Rule {
+    /// Any light, the one furthest out first.
+    Any,
+    /// Only lights darker than the fit: a cast shadow only ever darkens, so this pass finds
+    /// the lit lights where the shadowed ones are consistent among themselves (the fill light
+    /// in a crevice is a fraction of the direct light).
+    DarkerOnly,
+}
+
+/// Refits `measurements`, starting from their least-squares `fit`, leaving in `measurements`
+/// the lights the returned fit used. `spare` is a buffer of the same capacity.
+///
+/// Two rejection passes run from the weighted fit of all lights, one dropping any outlier and
+/// one dropping only lights darker than the fit. The result is the pass whose lights pass the
+/// chi-square test, then the one that kept more lights, then (shadows only darken) the one
+/// with the higher albedo.
+pub(super) fn refine(
+    context: &Context,
+    measurements: &mut Vec<Measurement>,
+    buffers: &mut Buffers,
+    least_squares: Fit,
+) -> Fit {
+    let options = &context.kernel.options().robust;
+    let chi = context.kernel.chi_square();
+    let Some(start) = weighted_fit(chi, measurements) else {
+        return least_squares;
+    };
+    let lambertian = chi.accepts_statistic(start.chi2, measurements.len());
+    if lambertian && !predicts_light(measurements, &start.n_lum) {
+        // Every light was read above the dark threshold, so a normal that turns away from one
+        // of them is a numerical failure of the weighted fit: keep least squares.
+        return least_squares;
+    }
+    let condition = least_squares.condition;
+    let all_lights = start.clone().into_fit(chi, measurements, condition, false);
+    if let Some(model) = &options.sheen {
+        // The sheen lobe brightens many lights smoothly: fit it to all lights before treating
+        // any as an outlier.
+        if context.force_sheen || !lambertian {
+            if let Some((fit, statistic)) = sheen::fit(model, context, measurements, &all_lights) {
+                if chi.accepts_statistic(statistic, measurements.len()) {
+                    return fit;
+                }
+            }
+        }
+    }
+    if lambertian {
+        return all_lights;
+    }
+    let Some(weighted) = reject_outliers(context, measurements, buffers, start) else {
+        return least_squares;
+    };
+    let rejected = measurements.len() < buffers.original.len();
+    let mut fit = weighted.into_fit(chi, measurements, condition, rejected);
+    if let Some(model) = &options.sheen {
+        if context.force_sheen || !chi.accepts(measurements, &fit.n_lum) {
+            if let Some((sheen_fit, statistic)) = sheen::fit(model, context, measurements, &fit) {
+                let lambert_statistic = chi.statistic(measurements, &fit.n_lum);
+                if context.force_sheen || statistic < lambert_statistic {
+                    fit = sheen_fit;
+                }
+            }
+        }
+    }
+    fit
+}
+
+/// The two rejection passes from `start`; leaves the chosen pass's lights in `measurements`
+/// (`None`, with the original lights restored, when the result is not a solution).
+fn reject_outliers(
+    context: &Context,
+    measurements: &mut Vec<Measurement>,
+    buffers: &mut Buffers,
+    start: WeightedFit,
+) -> Option<WeightedFit> {
+    let chi = context.kernel.chi_square();
+    buffers.original.clear();
+    buffers.original.extend_from_slice(measurements);
+    let spare = &mut buffers.darker;
+    spare.clear();
+    spare.extend_from_slice(measurements);
+    let any = reject(context, measurements, start.clone(), Rule::Any);
+    let darker = reject(context, spare, start, Rule::DarkerOnly);
+    let rank = |f: &WeightedFit, lights: usize| {
+        (
+            chi.accepts_statistic(f.chi2, lights),
+            lights,
+            f.n_lum.norm(),
+        )
+    };
+    let (a, b) = (rank(&any, measurements.len()), rank(&darker, spare.len()));
+    let weighted = if (b.0, b.1) > (a.0, a.1) || ((b.0, b.1) == (a.0, a.1) && b.2 > a.2) {
+        std::mem::swap(measurements, spare);
+        darker
+    } else {
+        any
+    };
+    if predicts_light(measurements, &weighted.n_lum) {
+        Some(weighted)
+    } else {
+        // Every kept light was read above the dark threshold, so a normal that turns away
+        // from one of them is a numerical failure, not a solution.
+        measurements.clear();
+        measurements.extend_from_slice(&buffers.original);
+        None
+    }
+}
+
+/// Backward elimination from `fit` under `rule` until the lights pass the chi-square test, no
+/// light is an outlier, or only the options' minimum is left.
+fn reject(
+    context: &Context,
+    measurements: &mut Vec<Measurement>,
+    fit: WeightedFit,
+    rule: Rule,
+) -> WeightedFit {
+    let options = context.kernel.options();
+    let chi = context.kernel.chi_square();
+    let usable = measurements.len();
+    let keep = ((1.0 - options.robust.max_rejected_fraction) * usable as f64).ceil() as usize;
+    let keep = keep.max(3);
+    let mut fit = fit;
+    while measurements.len() > keep && !chi.accepts_statistic(fit.chi2, measurements.len()) {
+        let sigma = options.robust.outlier_sigma;
+        let worst = match rule {
+            Rule::Any => worst_outlier(chi, measurements, &fit, sigma),
+            Rule::DarkerOnly => darkest_outlier(chi, measurements, sigma),
+        };
+        let Some(worst) = worst else {
+            break;
+        };
+        let removed = measurements.swap_remove(worst);
+        match weighted_fit(chi, measurements) {
+            Some(refit) if condition_of(measurements) <= options.max_condition => fit = refit,
+            _ => {
+                // Dropping it leaves the lights degenerate: keep it.
+                measurements.push(removed);
+                break;
+            }
+        }
+    }
+    fit
+}
+
+/// Weighted least squares (`W = 1 / variance` of each light's luminance) on the luminance:
+/// the maximum-likelihood fit under the noise model, whose residual is chi-square distributed.
+#[derive(Clone)]
+pub(super) struct WeightedFit {
+    n_lum: Vector3<f64>,
+    /// `(L^T W L)^-1`: the covariance of `n_lum`.
+    cov: Matrix3<f64>,
+    chi2: f64,
+}
+
+fn weighted_fit(chi: &ChiSquare, measurements: &[Measurement]) -> Option<WeightedFit> {
+    let mut a = Matrix3::zeros();
+    let mut b = Vector3::zeros();
+    for m in measurements {
+        let w = 1.0 / chi.variance(m);
+        a += m.l * m.l.transpose() * w;
+        b += m.l * (m.lum * w);
+    }
+    let cov = a.try_inverse()?;
+    let n_lum = cov * b;
+    let chi2 = chi.statistic(measurements, &n_lum);
+    Some(WeightedFit { n_lum, cov, chi2 })
+}
+
+/// Condition number of the lights' (unweighted) matrix, as the kernel reports it.
+fn condition_of(measurements: &[Measurement]) -> f64 {
+    let a: Matrix3<f64> = measurements.iter().map(|m| m.l * m.l.transpose()).sum();
+    a.try_inverse()
+        .map_or(f64::INFINITY, |inv| (a.norm() * inv.norm()).sqrt())
+}
+
+impl WeightedFit {
+    /// The colour solves with the same weights, in the kernel's shape.
+    fn into_fit(
+        self,
+        chi: &ChiSquare,
+        measurements: &[Measurement],
+        condition: f64,
+        rejected: bool,
+    ) -> Fit {
+        let mut b_rgb = [Vector3::zeros(); 3];
+        for m in measurements {
+            // The luminance weights serve the colour channels too: their noise is proportional.
+            let w = 1.0 / chi.variance(m);
+            for c in 0..3 {
+                b_rgb[c] += m.l * (m.rgb[c] * w);
+            }
+        }
+        let condition = if rejected {
+            condition_of(measurements)
+        } else {
+            condition
+        };
+        Fit {
+            n_lum: self.n_lum,
+            n_rgb: b_rgb.map(|b| self.cov * b),
+            a_inv: self.cov,
+            weighted: true,
+            condition,
+            residual: None,
+            kind: if rejected {
+                PixelFit::Robust
+            } else {
+                PixelFit::LeastSquares
+            },
+        }
+    }
+}
+
+/// The light whose removal lowers the chi-square statistic most, if its studentised residual
+/// `t_k^2 = w_k r_k^2 / (1 - h_k)` (exactly that drop, for weighted least squares) exceeds
+/// `sigma^2`.
+fn worst_outlier(
+    chi: &ChiSquare,
+    measurements: &[Measurement],
+    fit: &WeightedFit,
+    sigma: f64,
+) -> Option<usize> {
+    let mut worst = None;
+    let mut worst_t2 = sigma * sigma;
+    for (k, m) in measurements.iter().enumerate() {
+        let w = 1.0 / chi.variance(m);
+        let leverage = w * m.l.dot(&(fit.cov * m.l));
+        let spread = 1.0 - leverage;
+        if spread <= 1e-9 {
+            // A light no other light can check.
+            continue;
+        }
+        let r = m.lum - fit.n_lum.dot(&m.l);
+        let t2 = w * r * r / spread;
+        if t2 > worst_t2 {
+            worst_t2 = t2;
+            worst = Some(k);
+        }
+    }
+    worst
+}
+
+/// The light darkest relative to the unweighted least-squares fit (reading over prediction),
+/// among those significantly darker than it. Unweighted, because inverse-variance weights
+/// favour the dark readings, which are the shadowed ones.
+fn darkest_outlier(chi: &ChiSquare, measurements: &[Measurement], sigma: f64) -> Option<usize> {
+    let fit = fit_normal_equations(measurements)?;
+    let mut darkest = None;
+    let mut lowest_ratio = f64::INFINITY;
+    for (k, m) in measurements.iter().enumerate() {
+        let predicted = fit.n_lum.dot(&m.l);
+        let r = m.lum - predicted;
+        if r >= 0.0 || predicted <= 0.0 {
+            continue;
+        }
+        let spread = 1.0 - m.l.dot(&(fit.a_inv * m.l));
+        if spread <= 1e-9 || r * r <= sigma * sigma * chi.variance(m) * spread {
+            continue;
+        }
+        let ratio = m.lum / predicted;
+        if ratio < lowest_ratio {
+            lowest_ratio = ratio;
+            darkest = Some(k);
+        }
+    }
+    darkest
+}

@@ -1,0 +1,80 @@
+//! The white sheet and the LED fit, without OpenCV: the camera and table are taken as
+//! calibrated (the true rig's camera), the LEDs start from hand measurements that are off by
+//! 18-30 mm, and the fit must bring every one within 5 mm; the sheet re-solved with the result
+//! must come out flat.
+
+use psscan::calibration::{lights, whitesheet};
+use psscan::progress::Silent;
+use psscan::rig::Rig;
+use psscan::solve::NoiseModel;
+use psscan::synth::targets;
+
+const STEP: f64 = 8.0;
+const REFLECTANCE: f64 = 0.9;
+
+#[test]
+fn led_positions_converge_from_hand_measurements_off_by_three_centimetres() {
+    let hand = Rig::default_rig();
+    let truth = targets::as_built(&hand, 0.03, 5);
+    // Camera and table as calibrated; LEDs as measured by hand.
+    let mut start = hand.clone();
+    start.camera = truth.camera.clone();
+    let frames = targets::white_sheet_frames(&truth, STEP, REFLECTANCE, 0.02, 1, 3);
+    let sheet = whitesheet::measure(&frames, &start, REFLECTANCE, 8).unwrap();
+    let fit = lights::fit(&start, &sheet, &Silent).unwrap();
+    for it in &fit.iterations {
+        println!(
+            "iteration {:2}: max step {:8.3} mm, max power change {:+.2e}, rms residual {:.2e}",
+            it.iteration, it.max_step_mm, it.max_power_change, it.rms_relative_residual
+        );
+    }
+    assert!(fit.converged, "the fit converges");
+    let mut worst_start: f64 = 0.0;
+    let mut best_start = f64::MAX;
+    let mut worst: f64 = 0.0;
+    for (k, (led, t)) in fit.leds.iter().zip(&truth.leds).enumerate() {
+        let start_err = (0..3)
+            .map(|i| (led.start_m[i] - t.position_m[i]).powi(2))
+            .sum::<f64>()
+            .sqrt()
+            * 1e3;
+        let err = (0..3)
+            .map(|i| (led.position_m[i] - t.position_m[i]).powi(2))
+            .sum::<f64>()
+            .sqrt()
+            * 1e3;
+        println!("LED {k}: hand measurement off by {start_err:.1} mm, fit off by {err:.2} mm, power {:?} vs {:?}", led.rgb_power, truth.led_rgb_power(k));
+        worst_start = worst_start.max(start_err);
+        best_start = best_start.min(start_err);
+        worst = worst.max(err);
+    }
+    println!("hand errors {best_start:.1}-{worst_start:.1} mm -> fit within {worst:.2} mm after {} iterations", fit.iterations.len());
+    assert!(worst_start > 25.0 && worst_start <= 30.0);
+    assert!(worst < 5.0, "every LED within 5 mm, worst {worst:.2} mm");
+
+    // The sheet re-solved with the fitted lights. One exposure first: its noise and the
+    // calibration's own (block-mean) error decide how many exposures the check averages.
+    let calibrated = fit.apply(&start);
+    let noise = NoiseModel::from_sensor(&truth.sensor);
+    let single = whitesheet::flatness(&frames, &calibrated, noise, 1, &Silent).unwrap();
+    let budget = whitesheet::FLATNESS_TOLERANCE_DEG - single.block_max_deg;
+    let n = whitesheet::exposures_needed(single.predicted_noise_max_deg, budget);
+    let averaged = targets::white_sheet_frames(&truth, STEP, REFLECTANCE, 0.02, n, 4);
+    let check = whitesheet::flatness(&averaged, &calibrated, noise, n, &Silent).unwrap();
+    for f in [&single, &check] {
+        println!(
+            "flatness, {} exposure(s), {} pixels: mean {:.4} deg, max {:.4} deg, 16x16-block max {:.4} deg; predicted noise mean {:.4} deg, 99.9 % max {:.4} deg",
+            f.exposures, f.pixels, f.mean_deg, f.max_deg, f.block_max_deg, f.predicted_noise_mean_deg, f.predicted_noise_max_deg
+        );
+    }
+    // The noise model predicts the single exposure's mean error (within 10 %: the rest is
+    // the calibration's own error) and its tail.
+    assert!((single.mean_deg / single.predicted_noise_mean_deg - 1.0).abs() < 0.1);
+    assert!(single.max_deg < single.predicted_noise_max_deg + single.block_max_deg);
+    // Every normal of the averaged sheet within 0.5 degrees of straight up.
+    assert!(
+        check.flat && check.max_deg <= 0.5,
+        "max {} deg",
+        check.max_deg
+    );
+}
