@@ -5,6 +5,7 @@
 
 pub mod camera;
 pub mod cv;
+pub mod graychart;
 pub mod lights;
 pub mod table;
 pub mod whitesheet;

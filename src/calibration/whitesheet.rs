@@ -12,7 +12,8 @@ use crate::plane::{Frames, Plane};
 use crate::progress::Progress;
 use crate::rig::Rig;
 use crate::solve::{
-    self, LightSource, NoiseModel, PixelStatus, SolveInput, SolveOptions, LUMINANCE_WEIGHTS,
+    self, Estimator, LightSource, NoiseModel, PixelStatus, SolveInput, SolveOptions,
+    LUMINANCE_WEIGHTS,
 };
 
 /// One light's intensity over the sheet: per block, the table point it sees and the linear
@@ -267,7 +268,13 @@ pub fn flatness(
         exposure: 1.0,
         mask: None,
     };
-    let result = solve::solve(&input, &SolveOptions::default(), progress)?;
+    // Plain least squares: a white sheet has no shadows or sheen to reject, and the noise
+    // tail above is the least-squares estimate's.
+    let options = SolveOptions {
+        estimator: Estimator::LeastSquares,
+        ..SolveOptions::default()
+    };
+    let result = solve::solve(&input, &options, progress)?;
     let up = Vector3::z();
     let mut angles = Vec::new();
     let mut predicted = Vec::new();

@@ -30,6 +30,8 @@ pub(super) struct Measurement {
     pub var: f64,
     /// The variance the chi-square test and the weighted fits use (`ChiSquare::prepare`).
     pub test_var: f64,
+    /// Which light (frame index).
+    pub light: u16,
 }
 
 /// Per-thread buffer reused across pixels so the inner loop does not allocate.
@@ -62,9 +64,9 @@ pub struct RowOut<'a> {
 }
 
 impl<'a> RowOut<'a> {
-    /// True when pixel `x` was solved by least squares over all its lights.
-    pub fn is_plain_least_squares(&self, x: usize) -> bool {
-        self.status[x] == PixelStatus::Solved && self.fit[x] == PixelFit::LeastSquares
+    /// True when pixel `x` was solved, by a Lambertian fit.
+    pub fn is_lambertian(&self, x: usize) -> bool {
+        self.status[x] == PixelStatus::Solved && self.fit[x] != PixelFit::Sheen
     }
 
     pub fn split(result: &'a mut SolveResult) -> Vec<RowOut<'a>> {
@@ -292,6 +294,7 @@ impl<'a> Kernel<'a> {
                 lum,
                 var,
                 test_var: var,
+                light: k as u16,
             });
         }
         dropped

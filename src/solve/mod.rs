@@ -395,7 +395,7 @@ pub fn solve(
     Ok(result)
 }
 
-/// Solves the pixels of the mask (only those least squares solved, with `again`); returns how
+/// Solves the pixels of the mask (only those a Lambertian fit solved, with `again`); returns how
 /// many were escalated to the robust fit.
 fn solve_pass(
     input: &SolveInput,
@@ -414,7 +414,7 @@ fn solve_pass(
             if input.mask.is_some_and(|m| !m.data[y * width + x]) {
                 continue;
             }
-            if again && !row.is_plain_least_squares(x) {
+            if again && !row.is_lambertian(x) {
                 continue;
             }
             match illumination.point(x, y) {

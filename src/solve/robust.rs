@@ -108,6 +108,8 @@ pub(super) struct Buffers {
     original: Vec<Measurement>,
     /// The lights the darker-only pass keeps.
     darker: Vec<Measurement>,
+    /// The original readings while the sheen-corrected ones are tested.
+    sheen: Vec<Measurement>,
 }
 
 /// True when `n_lum` predicts a positive reading for every light.
@@ -152,36 +154,107 @@ pub(super) fn refine(
     }
     let condition = least_squares.condition;
     let all_lights = start.clone().into_fit(chi, measurements, condition, false);
-    if let Some(model) = &options.sheen {
-        // The sheen lobe brightens many lights smoothly: fit it to all lights before treating
-        // any as an outlier.
-        if context.force_sheen || !lambertian {
-            if let Some((fit, statistic)) = sheen::fit(model, context, measurements, &all_lights) {
-                if chi.accepts_statistic(statistic, measurements.len()) {
-                    return fit;
-                }
+    let Some(model) = &options.sheen else {
+        if lambertian {
+            return all_lights;
+        }
+        return lambertian_rejection(context, measurements, buffers, start, condition)
+            .unwrap_or(least_squares);
+    };
+    // The sheen lobe brightens many lights smoothly: fit it to all lights before treating any
+    // as an outlier.
+    let mut sheen_normal = None;
+    if context.force_sheen || !lambertian {
+        if let Some((fit, statistic)) = sheen::fit(model, context, measurements, &all_lights) {
+            if chi.accepts_statistic(statistic, measurements.len()) {
+                return fit;
             }
+            sheen_normal = fit.n_lum.try_normalize(1e-12);
         }
     }
     if lambertian {
         return all_lights;
     }
-    let Some(weighted) = reject_outliers(context, measurements, buffers, start) else {
-        return least_squares;
+    // Outliers under the sheen model: the Lambertian tests on the readings with the lobe (at
+    // the all-lights sheen normal) taken out, then the sheen fit on the lights kept.
+    let kept = match sheen_normal {
+        Some(n) => sheen_rejection(context, model, &n, measurements, buffers),
+        None => None,
     };
-    let rejected = measurements.len() < buffers.original.len();
-    let mut fit = weighted.into_fit(chi, measurements, condition, rejected);
-    if let Some(model) = &options.sheen {
-        if context.force_sheen || !chi.accepts(measurements, &fit.n_lum) {
-            if let Some((sheen_fit, statistic)) = sheen::fit(model, context, measurements, &fit) {
-                let lambert_statistic = chi.statistic(measurements, &fit.n_lum);
-                if context.force_sheen || statistic < lambert_statistic {
-                    fit = sheen_fit;
-                }
-            }
-        }
+    let Some(kept) = kept else {
+        return lambertian_rejection(context, measurements, buffers, start, condition)
+            .unwrap_or(least_squares);
+    };
+    let lambert_statistic = chi.statistic(measurements, &kept.n_lum);
+    match sheen::fit(model, context, measurements, &kept) {
+        Some((fit, statistic)) if context.force_sheen || statistic < lambert_statistic => fit,
+        _ => kept,
     }
-    fit
+}
+
+/// Rejection under the Lambertian model; leaves the kept lights in `measurements`.
+fn lambertian_rejection(
+    context: &Context,
+    measurements: &mut Vec<Measurement>,
+    buffers: &mut Buffers,
+    start: WeightedFit,
+    condition: f64,
+) -> Option<Fit> {
+    let chi = context.kernel.chi_square();
+    let usable = measurements.len();
+    let weighted = reject_outliers(context, measurements, buffers, start)?;
+    let rejected = measurements.len() < usable;
+    Some(weighted.into_fit(chi, measurements, condition, rejected))
+}
+
+/// Rejection on the readings with the sheen lobe at normal `n` taken out; leaves the kept
+/// lights' original readings in `measurements` and returns their Lambertian weighted fit.
+fn sheen_rejection(
+    context: &Context,
+    model: &sheen::SheenModel,
+    n: &Vector3<f64>,
+    measurements: &mut Vec<Measurement>,
+    buffers: &mut Buffers,
+) -> Option<Fit> {
+    let chi = context.kernel.chi_square();
+    if measurements.iter().any(|m| m.light >= 64) {
+        // The kept set is tracked as a 64-bit mask of light indices.
+        return None;
+    }
+    let mut originals = std::mem::take(&mut buffers.sheen);
+    originals.clear();
+    originals.extend_from_slice(measurements);
+    for m in measurements.iter_mut() {
+        *m = sheen::lambertian_equivalent(model, &context.view, n, m);
+    }
+    let outcome = weighted_fit(chi, measurements)
+        .and_then(|start| reject_outliers(context, measurements, buffers, start));
+    let kept = outcome.map(|_| {
+        let rejected = measurements.len() < originals.len();
+        let kept_lights: u64 = measurements
+            .iter()
+            .fold(0, |mask, m| mask | 1u64 << m.light);
+        measurements.clear();
+        measurements.extend(
+            originals
+                .iter()
+                .filter(|m| kept_lights & (1u64 << m.light) != 0),
+        );
+        rejected
+    });
+    let result = match kept {
+        Some(rejected) => weighted_fit(chi, measurements).map(|w| {
+            let condition = condition_of(measurements);
+            w.into_fit(chi, measurements, condition, rejected)
+        }),
+        None => {
+            measurements.clear();
+            measurements.extend_from_slice(&originals);
+            None
+        }
+    };
+    buffers.sheen = originals;
+    result
 }
 
 /// The two rejection passes from `start`; leaves the chosen pass's lights in `measurements`

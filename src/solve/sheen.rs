@@ -121,6 +121,32 @@ impl LightGeometry {
     }
 }
 
+/// `m` with the sheen lobe at normal `n` taken out: `(reading - sheen) / (1 - F)`, which is
+/// `kd (n.l)` where the model holds, so that the Lambertian outlier tests apply to it.
+pub(super) fn lambertian_equivalent(
+    model: &SheenModel,
+    view: &Vector3<f64>,
+    n: &Vector3<f64>,
+    m: &Measurement,
+) -> Measurement {
+    let f0 = model.luminance_f0();
+    let geometry = LightGeometry::new(f0, &m.l, view);
+    let (_, sheen) = model.terms_at(&geometry, n, view);
+    let diffuse_share = 1.0 - geometry.fresnel;
+    let rgb = std::array::from_fn(|c| {
+        let g = LightGeometry::new(model.f0[c], &m.l, view);
+        (m.rgb[c] - model.terms_at(&g, n, view).1) / (1.0 - g.fresnel)
+    });
+    let scale2 = diffuse_share * diffuse_share;
+    Measurement {
+        lum: (m.lum - sheen) / diffuse_share,
+        rgb,
+        var: m.var / scale2,
+        test_var: m.test_var / scale2,
+        ..*m
+    }
+}
+
 /// The normal `n0` moved by `(u, w)` in its tangent plane.
 fn perturbed(
     n0: &Vector3<f64>,
