@@ -12,7 +12,8 @@ use crate::plane::{Frames, Plane};
 use crate::progress::Progress;
 use crate::rig::Rig;
 use crate::solve::{
-    self, LightSource, NoiseModel, PixelStatus, SolveInput, SolveOptions, LUMINANCE_WEIGHTS,
+    self, Estimator, LightSource, NoiseModel, PixelStatus, SolveInput, SolveOptions,
+    LUMINANCE_WEIGHTS,
 };
 
 /// One light's intensity over the sheet: per block, the table point it sees and the linear
@@ -267,11 +268,10 @@ pub fn flatness(
         exposure: 1.0,
         mask: None,
     };
-    // The sheet is a Lambertian target and the check compares with the least-squares noise
-    // model: no robust rejection (which would trade lights for a larger, differently predicted
-    // error on the pixels the chi-square test flags by chance).
+    // Plain least squares: a white sheet has no shadows or sheen to reject, and the noise
+    // tail above is the least-squares estimate's.
     let options = SolveOptions {
-        estimator: solve::Estimator::LeastSquares,
+        estimator: Estimator::LeastSquares,
         ..SolveOptions::default()
     };
     let result = solve::solve(&input, &options, progress)?;

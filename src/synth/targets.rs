@@ -603,6 +603,80 @@ pub fn flat_target_frames(
     }
 }
 
+/// The gray chart (`chart`'s patches filling the world rectangle `x0..x1`, `y0..y1` on the
+/// table, metres) photographed under each LED as raw RGGB mosaics of a `width x height` window
+/// centred on the sensor, every `step` pixels, at `exposure`; and the chart's rectangle in the
+/// image (the projection of its world corners: what a user marks).
+pub fn gray_chart_mosaics(
+    rig: &Rig,
+    chart: &crate::calibration::graychart::ChartDescription,
+    world: [f64; 4],
+    (width, height, step): (usize, usize, f64),
+    exposure: f64,
+    seed: u64,
+) -> (
+    Vec<crate::raw::Mosaic>,
+    crate::calibration::graychart::ChartRect,
+) {
+    let window = SensorWindow::centred(
+        rig.camera.width as usize,
+        rig.camera.height as usize,
+        width,
+        height,
+        step,
+    );
+    let [x0, x1, y0, y1] = world;
+    let (rows, cols) = (chart.rows, chart.cols);
+    let reflectance = |x: f64, y: f64| {
+        if x < x0 || x >= x1 || y < y0 || y >= y1 {
+            return [0.2; 3];
+        }
+        let c = (((x - x0) / (x1 - x0)) * cols as f64) as usize;
+        // Row 0 at the top of the image: world +y.
+        let r = (((y1 - y) / (y1 - y0)) * rows as f64) as usize;
+        [chart.reflectance[r.min(rows - 1) * cols + c.min(cols - 1)]; 3]
+    };
+    let pattern = [[0u8, 1], [1, 2]];
+    let black = rig.sensor.black_level as f32;
+    let mosaics = (0..rig.leds.len())
+        .map(|k| {
+            let linear = render_flat_target(rig, window, width, height, k, exposure, &reflectance);
+            crate::raw::Mosaic {
+                width,
+                height,
+                pattern,
+                black: [[black; 2]; 2],
+                white: rig.sensor.white_level as f32,
+                samples: super::sensor::expose_mosaic(
+                    &linear,
+                    pattern,
+                    &rig.sensor,
+                    Noise::Seeded(seed),
+                    k as u64 + 1,
+                ),
+            }
+        })
+        .collect();
+    let to_image = |x: f64, y: f64| {
+        let (u, v) = rig
+            .camera
+            .project(&Vector3::new(x, y, rig.sample.z_m))
+            .expect("in front of the camera");
+        ((u - window.x0) / window.step, (v - window.y0) / window.step)
+    };
+    let (ax, ay) = to_image(x0, y1);
+    let (bx, by) = to_image(x1, y0);
+    (
+        mosaics,
+        crate::calibration::graychart::ChartRect {
+            x0: ax,
+            y0: ay,
+            x1: bx,
+            y1: by,
+        },
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

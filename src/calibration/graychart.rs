@@ -1,0 +1,347 @@
+//! The gray chart: a neutral value scale (such as the Munsell one in seed 004) photographed
+//! under each light. From the raw CFA values of each patch: per-light white-balance gains
+//! (the R and B multipliers that make the neutral patches neutral), and a linearity report
+//! (fit of measured against nominal reflectance: slope, offset, R^2, the worst patch, and
+//! the patches that clipped). Patch positions come from a chart description file plus the
+//! chart's rectangle in the image, given by the user.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+use crate::plane::SensorWindow;
+use crate::raw::Mosaic;
+use crate::rig::Rig;
+
+/// A chart layout (TOML): `rows x cols` equal patches filling the chart's rectangle, their
+/// nominal reflectances row by row, and the central fraction of each patch to sample (edges
+/// blur into the neighbours).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ChartDescription {
+    pub name: String,
+    pub rows: usize,
+    pub cols: usize,
+    pub reflectance: Vec<f64>,
+    #[serde(default = "default_sample_fraction")]
+    pub sample_fraction: f64,
+}
+
+fn default_sample_fraction() -> f64 {
+    0.5
+}
+
+impl ChartDescription {
+    pub fn load(path: &Path) -> Result<ChartDescription> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let chart: ChartDescription = toml::from_str(&text)
+            .map_err(|e| Error::config(path, "chart", e.message().to_string()))?;
+        chart
+            .validate()
+            .map_err(|(field, message)| Error::config(path, field, message))?;
+        Ok(chart)
+    }
+
+    pub fn validate(&self) -> std::result::Result<(), (String, String)> {
+        if self.rows == 0 || self.cols == 0 {
+            return Err(("rows".into(), "a chart needs at least one patch".into()));
+        }
+        if self.reflectance.len() != self.rows * self.cols {
+            return Err((
+                "reflectance".into(),
+                format!(
+                    "{} values for {} x {} patches",
+                    self.reflectance.len(),
+                    self.rows,
+                    self.cols
+                ),
+            ));
+        }
+        if let Some(r) = self
+            .reflectance
+            .iter()
+            .find(|r| !(r.is_finite() && **r > 0.0 && **r <= 1.0))
+        {
+            return Err((
+                "reflectance".into(),
+                format!("each must lie in (0, 1], got {r}"),
+            ));
+        }
+        if !(self.sample_fraction > 0.0 && self.sample_fraction <= 1.0) {
+            return Err(("sample_fraction".into(), "must lie in (0, 1]".into()));
+        }
+        Ok(())
+    }
+
+    /// Twelve Munsell neutral values, N2 to N9.5, in two rows (reflectances from the Munsell
+    /// renotation's luminous reflectance Y).
+    pub fn munsell_12() -> ChartDescription {
+        ChartDescription {
+            name: "munsell-N2-N9.5".into(),
+            rows: 2,
+            cols: 6,
+            reflectance: vec![
+                0.0313, 0.0483, 0.0665, 0.0898, 0.1200, 0.1977, 0.2622, 0.3620, 0.4663, 0.5910,
+                0.7866, 0.8910,
+            ],
+            sample_fraction: 0.5,
+        }
+    }
+}
+
+/// The chart's outer rectangle in image pixels (x0, y0) to (x1, y1), as the user marks it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChartRect {
+    pub x0: f64,
+    pub y0: f64,
+    pub x1: f64,
+    pub y1: f64,
+}
+
+impl ChartRect {
+    /// Parses `X0,Y0,X1,Y1`.
+    pub fn parse(text: &str) -> Result<ChartRect> {
+        let v: Vec<f64> = text
+            .split(',')
+            .filter_map(|t| t.trim().parse().ok())
+            .collect();
+        match v.as_slice() {
+            &[x0, y0, x1, y1] if x1 > x0 && y1 > y0 => Ok(ChartRect { x0, y0, x1, y1 }),
+            _ => Err(Error::Invalid(format!(
+                "chart rectangle `{text}`: expected X0,Y0,X1,Y1 in pixels with X1 > X0 and Y1 > Y0"
+            ))),
+        }
+    }
+}
+
+/// One patch under one light: mean linear value per channel (1.0 = white level) of its CFA
+/// samples, and whether any sample clipped.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
+pub struct PatchReading {
+    pub rgb: [f64; 3],
+    pub clipped: bool,
+}
+
+/// Linearity of one light's readings.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Linearity {
+    pub slope: f64,
+    pub offset: f64,
+    pub r_squared: f64,
+    /// Index of the patch furthest from the fit, and its relative deviation.
+    pub worst_patch: usize,
+    pub worst_deviation: f64,
+    /// Patches left out because a sample clipped at the white level.
+    pub clipped_patches: Vec<usize>,
+}
+
+/// One light's result.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LightChart {
+    /// Multipliers for R, G, B that make the neutral patches neutral (G = 1).
+    pub white_balance: [f64; 3],
+    /// Linearity of the green channel against nominal reflectance.
+    pub linearity: Linearity,
+    pub patches: Vec<PatchReading>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ChartReport {
+    pub chart: String,
+    pub lights: Vec<LightChart>,
+}
+
+/// Reads every patch of the chart in one light's mosaic.
+pub fn read_patches(
+    mosaic: &Mosaic,
+    chart: &ChartDescription,
+    rect: &ChartRect,
+) -> Result<Vec<PatchReading>> {
+    mosaic.validate()?;
+    let (cw, ch) = (
+        (rect.x1 - rect.x0) / chart.cols as f64,
+        (rect.y1 - rect.y0) / chart.rows as f64,
+    );
+    let margin = 0.5 * (1.0 - chart.sample_fraction);
+    let mut out = Vec::with_capacity(chart.rows * chart.cols);
+    for r in 0..chart.rows {
+        for c in 0..chart.cols {
+            let x0 = (rect.x0 + (c as f64 + margin) * cw).round().max(0.0) as usize;
+            let x1 = (rect.x0 + (c as f64 + 1.0 - margin) * cw).round() as usize;
+            let y0 = (rect.y0 + (r as f64 + margin) * ch).round().max(0.0) as usize;
+            let y1 = (rect.y0 + (r as f64 + 1.0 - margin) * ch).round() as usize;
+            if x1 > mosaic.width || y1 > mosaic.height || x1 < x0 + 2 || y1 < y0 + 2 {
+                return Err(Error::Invalid(format!(
+                    "patch {} (row {r}, column {c}) at x {x0}..{x1}, y {y0}..{y1} is not inside the {}x{} image with at least 2x2 samples",
+                    r * chart.cols + c,
+                    mosaic.width,
+                    mosaic.height
+                )));
+            }
+            out.push(patch_mean(mosaic, x0, x1, y0, y1));
+        }
+    }
+    Ok(out)
+}
+
+fn patch_mean(m: &Mosaic, x0: usize, x1: usize, y0: usize, y1: usize) -> PatchReading {
+    let mut sum = [0.0f64; 3];
+    let mut count = [0usize; 3];
+    let mut clipped = false;
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let site = (y % 2, x % 2);
+            let c = m.pattern[site.0][site.1] as usize;
+            let raw = m.samples[y * m.width + x] as f32;
+            clipped |= raw >= m.white;
+            let black = m.black[site.0][site.1];
+            sum[c] += ((raw - black) / (m.white - black)) as f64;
+            count[c] += 1;
+        }
+    }
+    PatchReading {
+        rgb: std::array::from_fn(|c| sum[c] / count[c].max(1) as f64),
+        clipped,
+    }
+}
+
+/// White balance and linearity of one light from its patch readings.
+pub fn analyse(chart: &ChartDescription, patches: Vec<PatchReading>) -> Result<LightChart> {
+    let usable: Vec<usize> = (0..patches.len())
+        .filter(|&i| !patches[i].clipped)
+        .collect();
+    if usable.len() < 3 {
+        return Err(Error::Invalid(format!(
+            "only {} unclipped patches: lower the exposure so at least 3 patches are below the white level",
+            usable.len()
+        )));
+    }
+    // Neutral patches: R/G and B/G are the same on all; weight by signal (least squares
+    // through the origin of G against C).
+    let gain = |c: usize| {
+        let (num, den) = usable.iter().fold((0.0, 0.0), |(n, d), &i| {
+            let p = &patches[i].rgb;
+            (n + p[1] * p[c], d + p[c] * p[c])
+        });
+        num / den
+    };
+    let white_balance = [gain(0), 1.0, gain(2)];
+    let x: Vec<f64> = usable.iter().map(|&i| chart.reflectance[i]).collect();
+    let y: Vec<f64> = usable.iter().map(|&i| patches[i].rgb[1]).collect();
+    let n = x.len() as f64;
+    let (mx, my) = (x.iter().sum::<f64>() / n, y.iter().sum::<f64>() / n);
+    let sxx: f64 = x.iter().map(|v| (v - mx).powi(2)).sum();
+    let sxy: f64 = x.iter().zip(&y).map(|(a, b)| (a - mx) * (b - my)).sum();
+    let syy: f64 = y.iter().map(|v| (v - my).powi(2)).sum();
+    let slope = sxy / sxx;
+    let offset = my - slope * mx;
+    let ss_res: f64 = x
+        .iter()
+        .zip(&y)
+        .map(|(a, b)| (b - (offset + slope * a)).powi(2))
+        .sum();
+    let (worst_patch, worst_deviation) = usable
+        .iter()
+        .zip(x.iter().zip(&y))
+        .map(|(&i, (a, b))| {
+            let fit = offset + slope * a;
+            (i, (b - fit) / fit)
+        })
+        .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
+        .expect("at least three patches");
+    Ok(LightChart {
+        white_balance,
+        linearity: Linearity {
+            slope,
+            offset,
+            r_squared: 1.0 - ss_res / syy,
+            worst_patch,
+            worst_deviation,
+            clipped_patches: (0..patches.len()).filter(|&i| patches[i].clipped).collect(),
+        },
+        patches,
+    })
+}
+
+/// Where the mosaics are on the rig's sensor, so each patch's reading can be divided by its
+/// light's shading there (inverse square, beam, incidence: across a 12 cm chart an LED at 30
+/// degrees elevation varies by tens of percent, which would read as non-linearity).
+pub struct Shading<'a> {
+    pub rig: &'a Rig,
+    pub window: SensorWindow,
+}
+
+impl Shading<'_> {
+    /// Light `k`'s white-surface shading at the centre of each patch.
+    fn at_patches(&self, k: usize, chart: &ChartDescription, rect: &ChartRect) -> Result<Vec<f64>> {
+        let mapper = self.rig.camera.plane_mapper(self.rig.sample.z_m);
+        let (cw, ch) = (
+            (rect.x1 - rect.x0) / chart.cols as f64,
+            (rect.y1 - rect.y0) / chart.rows as f64,
+        );
+        let mut out = Vec::new();
+        for r in 0..chart.rows {
+            for c in 0..chart.cols {
+                let (u, v) = self.window.to_sensor(
+                    rect.x0 + (c as f64 + 0.5) * cw,
+                    rect.y0 + (r as f64 + 0.5) * ch,
+                );
+                let p = mapper
+                    .map(u, v)
+                    .ok_or_else(|| Error::Invalid("the chart is not on the table plane".into()))?;
+                let s = self.rig.leds[k].sample_at(&p);
+                out.push(s.falloff / self.rig.leds[k].power * s.direction.z.max(0.0));
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// Reads and analyses the chart under every light; with `shading`, each reading is divided by
+/// its light's modelled shading at the patch first.
+pub fn calibrate(
+    mosaics: &[Mosaic],
+    chart: &ChartDescription,
+    rect: &ChartRect,
+    shading: Option<&Shading>,
+) -> Result<ChartReport> {
+    let lights = mosaics
+        .iter()
+        .enumerate()
+        .map(|(k, m)| {
+            let mut patches = read_patches(m, chart, rect)?;
+            if let Some(s) = shading {
+                for (p, shade) in patches.iter_mut().zip(s.at_patches(k, chart, rect)?) {
+                    p.rgb = p.rgb.map(|v| v / shade);
+                }
+            }
+            Ok(patches)
+        })
+        .map(|patches: Result<Vec<PatchReading>>| patches.and_then(|p| analyse(chart, p)))
+        .enumerate()
+        .map(|(k, r)| r.map_err(|e| Error::Invalid(format!("gray chart under light {k}: {e}"))))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(ChartReport {
+        chart: chart.name.clone(),
+        lights,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chart_descriptions_and_rectangles_are_checked() {
+        assert!(ChartDescription::munsell_12().validate().is_ok());
+        let mut bad = ChartDescription::munsell_12();
+        bad.reflectance.pop();
+        assert!(bad.validate().unwrap_err().1.contains("11 values"));
+        assert!(ChartRect::parse("10,20,110,80").is_ok());
+        assert!(ChartRect::parse("10,20,5,80")
+            .unwrap_err()
+            .to_string()
+            .contains("X0,Y0,X1,Y1"));
+    }
+}
