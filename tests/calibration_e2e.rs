@@ -19,8 +19,8 @@ const VIEW_STEP: f64 = 4.0;
 const SHEET_STEP: f64 = 8.0;
 const REFLECTANCE: f64 = 0.9;
 
-/// Camera, table and lights from the targets alone.
-fn calibrate_from_targets(hand: &Rig, truth: &Rig) -> Rig {
+/// Camera, table and lights from the targets alone; and the lights' gain grids.
+fn calibrate_from_targets(hand: &Rig, truth: &Rig) -> (Rig, Vec<psscan::solve::GainGrid>) {
     let chess = Chessboard {
         board: Board::parse("9x6", 15.0).unwrap(),
         border_squares: 1.0,
@@ -62,7 +62,9 @@ fn calibrate_from_targets(hand: &Rig, truth: &Rig) -> Rig {
         );
         assert!(err < 5e-3, "LED {k} within 5 mm");
     }
-    fit.apply(&with_camera)
+    let calibrated = fit.apply(&with_camera);
+    let gains = lights::gain_grids(&calibrated, &sheet).unwrap();
+    (calibrated, gains)
 }
 
 fn textile_frames(truth: &Rig, scene: &Scene) -> Frames {
@@ -87,7 +89,7 @@ fn textile_frames(truth: &Rig, scene: &Scene) -> Frames {
 fn opencv_end_to_end_calibrated_rig_solves_within_1_2x_of_the_true_rig() {
     let hand = Rig::default_rig();
     let truth = targets::as_built(&hand, 0.03, 5);
-    let calibrated = calibrate_from_targets(&hand, &truth);
+    let (calibrated, gains) = calibrate_from_targets(&hand, &truth);
 
     // The textile over the whole field, every 8th sensor pixel: the edges are where a wrong
     // light position shows (seed Figure 10).
@@ -105,10 +107,10 @@ fn opencv_end_to_end_calibrated_rig_solves_within_1_2x_of_the_true_rig() {
     .unwrap();
     let frames = textile_frames(&truth, &scene);
     let noise = NoiseModel::from_sensor(&truth.sensor);
-    let solve_with = |rig: &Rig| {
+    let solve_with = |lights: LightSource| {
         let input = SolveInput {
             frames: &frames,
-            lights: LightSource::Rig(rig),
+            lights,
             noise,
             exposure: 1.0,
             mask: None,
@@ -116,9 +118,14 @@ fn opencv_end_to_end_calibrated_rig_solves_within_1_2x_of_the_true_rig() {
         let result = solve::solve(&input, &SolveOptions::default(), &Silent).unwrap();
         psscan::eval::compare(&result, &scene.truth.normal, &scene.truth.albedo)
     };
-    let with_truth = solve_with(&truth);
-    let with_calibration = solve_with(&calibrated);
-    let with_hand = solve_with(&hand);
+    let with_truth = solve_with(LightSource::Rig(&truth));
+    let with_calibration = solve_with(LightSource::Rig(&calibrated));
+    let with_gains = solve_with(LightSource::Calibrated {
+        rig: &calibrated,
+        gains: &gains,
+    });
+    let with_hand = solve_with(LightSource::Rig(&hand));
+    let gains_ratio = with_gains.normal_error_deg.mean / with_truth.normal_error_deg.mean;
     let ratio = with_calibration.normal_error_deg.mean / with_truth.normal_error_deg.mean;
     println!(
         "textile {w}x{h}: mean angular error true rig {:.4} deg, calibrated {:.4} deg (ratio {ratio:.3}), hand-measured rig {:.4} deg (ratio {:.3}); albedo rel. error {:.4} / {:.4}",
@@ -129,7 +136,15 @@ fn opencv_end_to_end_calibrated_rig_solves_within_1_2x_of_the_true_rig() {
         with_truth.albedo_rel_error.mean,
         with_calibration.albedo_rel_error.mean,
     );
+    println!(
+        "calibrated light source with the sheet's gain grids: {:.4} deg (ratio {gains_ratio:.3})",
+        with_gains.normal_error_deg.mean
+    );
     assert!(ratio <= 1.2, "calibrated / true = {ratio}");
+    assert!(
+        gains_ratio <= 1.2,
+        "calibrated with gains / true = {gains_ratio}"
+    );
 
     // The wizard's last step: the sheet re-solved with the final calibration, averaging as
     // many exposures as the single exposure's predicted noise tail asks for.

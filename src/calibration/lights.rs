@@ -271,3 +271,62 @@ fn channel_powers(led: &Led, sheet: &SheetLight) -> [f64; 3] {
         num / den
     })
 }
+
+/// Blocks averaged per gain-grid cell side: the paper's texture and the sensor noise average
+/// out over 64 blocks (a per-block correction would put them into every light's intensity).
+pub const GAIN_CELL_BLOCKS: usize = 8;
+
+/// Per light, what the white sheet measured over what the fitted model predicts, averaged over
+/// cells of `GAIN_CELL_BLOCKS x GAIN_CELL_BLOCKS` blocks on a regular world grid: the
+/// calibrated light source's correction ([`crate::solve::LightSource::Calibrated`]).
+pub fn gain_grids(fitted: &Rig, sheet: &[SheetLight]) -> Result<Vec<crate::solve::GainGrid>> {
+    let first = sheet
+        .first()
+        .ok_or_else(|| Error::Invalid("no white-sheet lights".into()))?;
+    let (mut xmin, mut xmax, mut ymin, mut ymax) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for p in &first.points {
+        (xmin, xmax, ymin, ymax) = (xmin.min(p.x), xmax.max(p.x), ymin.min(p.y), ymax.max(p.y));
+    }
+    let (bw, bh) = first.grid;
+    let nx = (bw / GAIN_CELL_BLOCKS).max(2);
+    let ny = (bh / GAIN_CELL_BLOCKS).max(2);
+    // Nodes at the cell centres; cells tile the sheet's extent.
+    let (cw, ch) = ((xmax - xmin) / nx as f64, (ymax - ymin) / ny as f64);
+    sheet
+        .iter()
+        .enumerate()
+        .map(|(k, light)| {
+            let led = &fitted.leds[k];
+            let luminance_power: f64 = (0..3)
+                .map(|c| crate::solve::LUMINANCE_WEIGHTS[c] * fitted.led_rgb_power(k)[c])
+                .sum::<f64>()
+                / led.power;
+            let mut sum = vec![0.0; nx * ny];
+            let mut count = vec![0usize; nx * ny];
+            for (p, m) in light.points.iter().zip(light.luminance()) {
+                let predicted = model(led, p) * luminance_power;
+                if !(m.is_finite() && m > 0.0 && predicted > 0.0) {
+                    continue;
+                }
+                let i = (((p.x - xmin) / cw) as usize).min(nx - 1);
+                let j = (((p.y - ymin) / ch) as usize).min(ny - 1);
+                sum[j * nx + i] += m / predicted;
+                count[j * nx + i] += 1;
+            }
+            let values = sum
+                .iter()
+                .zip(&count)
+                .map(|(s, &n)| if n > 0 { s / n as f64 } else { 1.0 })
+                .collect();
+            Ok(crate::solve::GainGrid {
+                x0: xmin + 0.5 * cw,
+                y0: ymin + 0.5 * ch,
+                dx: cw,
+                dy: ch,
+                nx,
+                ny,
+                values,
+            })
+        })
+        .collect()
+}

@@ -31,6 +31,43 @@ pub enum LightSource<'a> {
         directions: &'a [[f64; 3]],
         intensities: &'a [[f64; 3]],
     },
+    /// A calibrated rig (LED positions and powers fitted to the white sheet) and, per light,
+    /// the sheet's measured intensity over the fitted model's on the table: what the point
+    /// model misses (beam asymmetry, reflections in the rig) corrects the falloff.
+    Calibrated { rig: &'a Rig, gains: &'a [GainGrid] },
+}
+
+/// A light's intensity correction over the table: a regular grid of factors in world x, y
+/// (metres), bilinear between nodes, clamped at the edges.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct GainGrid {
+    pub x0: f64,
+    pub y0: f64,
+    pub dx: f64,
+    pub dy: f64,
+    pub nx: usize,
+    pub ny: usize,
+    /// Row-major, `nx * ny` factors.
+    pub values: Vec<f64>,
+}
+
+impl GainGrid {
+    /// The factor at world `(x, y)`.
+    pub fn at(&self, x: f64, y: f64) -> f64 {
+        let gx = ((x - self.x0) / self.dx).clamp(0.0, (self.nx - 1) as f64);
+        let gy = ((y - self.y0) / self.dy).clamp(0.0, (self.ny - 1) as f64);
+        let (i, j) = (
+            (gx as usize).min(self.nx.saturating_sub(2)),
+            (gy as usize).min(self.ny.saturating_sub(2)),
+        );
+        let (fx, fy) = (gx - i as f64, gy - j as f64);
+        let v = |i: usize, j: usize| self.values[j * self.nx + i];
+        if self.nx < 2 || self.ny < 2 {
+            return self.values[0];
+        }
+        (1.0 - fy) * ((1.0 - fx) * v(i, j) + fx * v(i + 1, j))
+            + fy * ((1.0 - fx) * v(i, j + 1) + fx * v(i + 1, j + 1))
+    }
 }
 
 /// Everything the solve needs to know about the lights, precomputed once per solve.
@@ -46,6 +83,8 @@ pub struct Illumination<'a> {
     window: SensorWindow,
     /// The camera's centre (rigs); `None`: an orthographic camera looking down +z.
     camera: Option<Vector3<f64>>,
+    /// Per light intensity corrections of a calibrated rig (empty otherwise).
+    gains: &'a [GainGrid],
 }
 
 struct LedModel {
@@ -66,6 +105,27 @@ impl<'a> Illumination<'a> {
     ) -> Result<Self> {
         match *source {
             LightSource::Rig(rig) => Self::from_rig(rig, model, width, height, window),
+            LightSource::Calibrated { rig, gains } => {
+                if gains.len() != rig.leds.len() {
+                    return Err(Error::Invalid(format!(
+                        "{} light gain grids for a rig with {} LEDs",
+                        gains.len(),
+                        rig.leds.len()
+                    )));
+                }
+                if let Some(k) = gains.iter().position(|g| {
+                    g.nx * g.ny != g.values.len()
+                        || g.values.is_empty()
+                        || g.values.iter().any(|v| !(v.is_finite() && *v > 0.0))
+                }) {
+                    return Err(Error::Invalid(format!(
+                        "light {k}: the gain grid is empty, the wrong size, or not positive"
+                    )));
+                }
+                let mut ill = Self::from_rig(rig, model, width, height, window)?;
+                ill.gains = gains;
+                Ok(ill)
+            }
             LightSource::Directions {
                 directions,
                 intensities,
@@ -110,6 +170,7 @@ impl<'a> Illumination<'a> {
             mapper: Some(mapper),
             window,
             camera: Some(rig.camera.centre()),
+            gains: &[],
         })
     }
 
@@ -153,6 +214,7 @@ impl<'a> Illumination<'a> {
             mapper: None,
             window,
             camera: None,
+            gains: &[],
         })
     }
 
@@ -220,9 +282,13 @@ impl<'a> Illumination<'a> {
                 } else {
                     cos_theta.powf(led.beam_exponent)
                 };
+                let gain = match self.gains.get(k) {
+                    Some(grid) => grid.at(point.x, point.y),
+                    None => 1.0,
+                };
                 LightSample {
                     direction,
-                    falloff: led.power * beam / r2,
+                    falloff: led.power * beam / r2 * gain,
                 }
             }
         }
@@ -254,6 +320,59 @@ mod tests {
             assert!((d.direction - reference.direction).norm() < 1e-12);
             assert!((d.falloff - reference.falloff).abs() < 1e-12);
         }
+    }
+
+    #[test]
+    fn a_calibrated_rig_scales_each_light_by_its_gain_grid() {
+        let rig = Rig::default_rig();
+        let (w, h) = (rig.camera.width as usize, rig.camera.height as usize);
+        let grid = |v: f64| GainGrid {
+            x0: -0.2,
+            y0: -0.1,
+            dx: 0.2,
+            dy: 0.2,
+            nx: 3,
+            ny: 2,
+            values: vec![1.0, v, 1.0, 1.0, 1.0, 1.0],
+        };
+        let gains: Vec<GainGrid> = (0..rig.leds.len())
+            .map(|k| grid(1.0 + 0.01 * k as f64))
+            .collect();
+        let plain = Illumination::new(
+            &LightSource::Rig(&rig),
+            LightModel::Near,
+            w,
+            h,
+            SensorWindow::FULL,
+        )
+        .unwrap();
+        let source = LightSource::Calibrated {
+            rig: &rig,
+            gains: &gains,
+        };
+        let calibrated =
+            Illumination::new(&source, LightModel::Near, w, h, SensorWindow::FULL).unwrap();
+        // At the node (0, -0.1) light k's factor is 1 + 0.01 k; halfway to (0, 0.1) half of that.
+        for (p, f) in [
+            (Vector3::new(0.0, -0.1, 0.0), 1.0),
+            (Vector3::new(0.0, 0.0, 0.0), 0.5),
+        ] {
+            for k in 0..rig.leds.len() {
+                let expected = 1.0 + f * 0.01 * k as f64;
+                let ratio = calibrated.sample(k, &p).falloff / plain.sample(k, &p).falloff;
+                assert!((ratio - expected).abs() < 1e-12, "{ratio} vs {expected}");
+                assert_eq!(
+                    calibrated.sample(k, &p).direction,
+                    plain.sample(k, &p).direction
+                );
+            }
+        }
+        let short = &gains[..3];
+        let source = LightSource::Calibrated {
+            rig: &rig,
+            gains: short,
+        };
+        assert!(Illumination::new(&source, LightModel::Near, w, h, SensorWindow::FULL).is_err());
     }
 
     #[test]

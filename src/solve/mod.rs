@@ -24,7 +24,7 @@ use crate::error::{Error, Result};
 use crate::plane::{Frames, Mask, Plane};
 use crate::progress::Progress;
 
-pub use lights::{Illumination, LightModel, LightSource};
+pub use lights::{GainGrid, Illumination, LightModel, LightSource};
 pub use predict::{elliptic_e, expected_angle_error, NoiseModel};
 pub use robust::RobustOptions;
 pub use sheen::SheenModel;
