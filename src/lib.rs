@@ -11,6 +11,8 @@
 // than zipped iterators.
 #![allow(clippy::needless_range_loop)]
 
+pub mod alloc;
+pub mod bench;
 pub mod calibration;
 pub mod capture;
 pub mod emulated;
@@ -23,6 +25,7 @@ pub mod pipeline;
 pub mod plane;
 pub mod progress;
 pub mod raw;
+pub mod region;
 pub mod rig;
 pub mod solve;
 pub mod synth;

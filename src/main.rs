@@ -2,6 +2,10 @@
 
 mod cli;
 
+// Counts heap bytes so `psscan bench` can report the solve's peak memory.
+#[global_allocator]
+static ALLOC: psscan::alloc::CountingAlloc = psscan::alloc::CountingAlloc;
+
 fn main() {
     std::process::exit(cli::run());
 }

@@ -92,6 +92,12 @@ pub fn solve_diligent_set(
     progress: &dyn Progress,
 ) -> Result<Report> {
     let total = Instant::now();
+    if !job.region.is_full() {
+        return Err(Error::Unsupported(format!(
+            "{}: --roi, --bin and --background apply to psscan capture sets, not DiLiGenT sets",
+            dir.display()
+        )));
+    }
     if job.develop.resolution != Resolution::Full {
         return Err(Error::Unsupported(format!(
             "{}: half resolution is 2x2 CFA binning of RAW frames; DiLiGenT sets store RGB \

@@ -15,12 +15,13 @@ use crate::error::{Error, Result};
 use crate::eval::{self, Stats};
 use crate::fsutil::{create_dir_all, write_atomic, StagedDir};
 use crate::maps::{self, report::Mean, MapOptions, Report, WrittenMaps};
-use crate::plane::{Plane, RgbPlanes, SensorWindow};
+use crate::plane::{Frames, Mask, Plane, RgbPlanes, SensorWindow};
 use crate::progress::{Progress, Silent};
 use crate::raw::{
     encode_dng, encode_png16, DecodeInfo, DevelopOptions, DngStorage, Levels, Mosaic, RawMeta,
     Resolution,
 };
+use crate::region::{self, Background, RegionInfo, Roi};
 use crate::rig::Rig;
 use crate::solve::{self, NoiseModel, SolveInput, SolveOptions};
 use crate::synth::{expose, expose_mosaic, FrameEncoding, Scene, SynthSpec};
@@ -312,6 +313,153 @@ pub struct SolveJob {
     pub force: bool,
     /// How frames are developed (resolution, dark-frame subtraction).
     pub develop: DevelopOptions,
+    /// The part of the frames to solve (crop, binning, background mask).
+    pub region: RegionJob,
+}
+
+/// Which pixels a solve covers: crop, then 2x2 binning, then the background mask.
+#[derive(Clone, Debug, Default)]
+pub struct RegionJob {
+    pub roi: Option<Roi>,
+    /// 1 (every pixel) or 2 (2x2 blocks: a half-resolution preview).
+    pub bin: usize,
+    pub background: Background,
+}
+
+impl RegionJob {
+    pub fn is_full(&self) -> bool {
+        self.roi.is_none() && self.bin <= 1 && self.background == Background::None
+    }
+}
+
+/// Applies `job` to decoded frames: returns the frames to solve, the sample mask, the noise
+/// model for them, and a note for the report.
+pub fn select_region(
+    frames: Frames,
+    lights: &solve::LightSource,
+    noise: NoiseModel,
+    job: &RegionJob,
+) -> Result<(Frames, Option<Mask>, NoiseModel, RegionInfo)> {
+    let (full_w, full_h) = (frames.width, frames.height);
+    let mut frames = match &job.roi {
+        Some(roi) => region::crop(&frames, roi)?,
+        None => frames,
+    };
+    let mut noise = noise;
+    match job.bin {
+        0 | 1 => {}
+        2 => {
+            frames = region::bin2(&frames)?;
+            // Each value is a mean of four: a quarter of the variance (treated as independent).
+            noise.channel_scale = noise.channel_scale.map(|c| c * 0.25);
+            noise.shared_cfa_sample = None;
+        }
+        n => {
+            return Err(Error::Invalid(format!(
+                "--bin {n}: only 1 and 2 are supported"
+            )))
+        }
+    }
+    let mut info = RegionInfo {
+        roi: job.roi,
+        bin: job.bin.max(1),
+        background: "none".into(),
+        sample_pixels: frames.width * frames.height,
+        auto: None,
+    };
+    let mask = match &job.background {
+        Background::None => None,
+        Background::Auto => {
+            let (mask, auto) = region::auto_mask(&frames, lights)?;
+            info.background = "auto".into();
+            info.auto = Some(auto);
+            Some(mask)
+        }
+        Background::File(path) => {
+            let mut mask = region::read_mask(path)?;
+            if mask.width != full_w || mask.height != full_h {
+                return Err(Error::Invalid(format!(
+                    "background mask {} is {}x{}, the frames are {full_w}x{full_h}",
+                    path.display(),
+                    mask.width,
+                    mask.height
+                )));
+            }
+            if let Some(roi) = &job.roi {
+                mask = region::crop_mask_to(&mask, roi)?;
+            }
+            if job.bin == 2 {
+                mask = region::bin2_mask(&mask);
+            }
+            info.background = path.display().to_string();
+            Some(mask)
+        }
+    };
+    if let Some(m) = &mask {
+        info.sample_pixels = m.count();
+    }
+    Ok((frames, mask, noise, info))
+}
+
+/// Ground truth cropped and binned as `job` does to the frames. Binning averages each
+/// channel's scaled normal `a_c n` over the block (what a Lambertian block measures); the
+/// normal is that of the luminance, the albedo each channel's projection on it.
+pub fn region_truth(
+    (normal, albedo): ([Plane; 3], [Plane; 3]),
+    job: &RegionJob,
+) -> Result<([Plane; 3], [Plane; 3])> {
+    let crop = |p: Plane| -> Result<Plane> {
+        match &job.roi {
+            Some(roi) => {
+                let frames = Frames {
+                    width: p.width,
+                    height: p.height,
+                    window: SensorWindow::FULL,
+                    lights: vec![crate::plane::LightFrame {
+                        rgb: RgbPlanes {
+                            r: p.clone(),
+                            g: p.clone(),
+                            b: p,
+                        },
+                        saturated: None,
+                    }],
+                };
+                Ok(region::crop(&frames, roi)?.lights.remove(0).rgb.r)
+            }
+            None => Ok(p),
+        }
+    };
+    let [n0, n1, n2] = normal;
+    let [a0, a1, a2] = albedo;
+    let normal = [crop(n0)?, crop(n1)?, crop(n2)?];
+    let albedo = [crop(a0)?, crop(a1)?, crop(a2)?];
+    if job.bin != 2 {
+        return Ok((normal, albedo));
+    }
+    let (w, h) = (normal[0].width / 2, normal[0].height / 2);
+    let mut n_out: [Plane; 3] = std::array::from_fn(|_| Plane::new(w, h, 0.0));
+    let mut a_out: [Plane; 3] = std::array::from_fn(|_| Plane::new(w, h, 0.0));
+    for y in 0..h {
+        for x in 0..w {
+            let mut per_channel = [nalgebra::Vector3::<f64>::zeros(); 3];
+            for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                let i = (2 * y + dy) * normal[0].width + 2 * x + dx;
+                let n = nalgebra::Vector3::from_fn(|k, _| normal[k].data[i] as f64);
+                for c in 0..3 {
+                    per_channel[c] += n * albedo[c].data[i] as f64;
+                }
+            }
+            let lum: nalgebra::Vector3<f64> = (0..3)
+                .map(|c| per_channel[c] * solve::LUMINANCE_WEIGHTS[c])
+                .sum();
+            let unit = lum.normalize();
+            for k in 0..3 {
+                n_out[k].data[y * w + x] = unit[k] as f32;
+                a_out[k].data[y * w + x] = (per_channel[k].dot(&unit) / 4.0) as f32;
+            }
+        }
+    }
+    Ok((n_out, a_out))
 }
 
 /// Solves the capture set in `dir` and writes maps and `report.json` into `out`. The output
@@ -335,12 +483,17 @@ pub fn solve_capture_set(
     timings.insert("decode".into(), start.elapsed().as_secs_f64());
 
     let start = Instant::now();
+    let lights = solve::LightSource::Rig(&set.rig);
+    let noise = decoded_noise_model(&set.rig, &decode);
+    let (frames, mask, noise, region_info) = select_region(frames, &lights, noise, &job.region)?;
+    timings.insert("region".into(), start.elapsed().as_secs_f64());
+    let start = Instant::now();
     let input = SolveInput {
         frames: &frames,
-        lights: solve::LightSource::Rig(&set.rig),
-        noise: decoded_noise_model(&set.rig, &decode),
+        lights,
+        noise,
         exposure: set.manifest.image.exposure,
-        mask: None,
+        mask: mask.as_ref(),
     };
     let result = solve::solve(&input, &job.options, progress)?;
     timings.insert("solve".into(), start.elapsed().as_secs_f64());
@@ -356,8 +509,12 @@ pub fn solve_capture_set(
 
     let outputs = relocate(outputs, out);
     let mut report = Report::new(dir, &set.rig.name, &result, &job.options, outputs);
-    if let Some((normal, albedo)) = truth_for(&set, &decode)? {
+    if let Some(truth) = truth_for(&set, &decode)? {
+        let (normal, albedo) = region_truth(truth, &job.region)?;
         report.truth = Some(eval::compare(&result, &normal, &albedo));
+    }
+    if !job.region.is_full() {
+        report.region = Some(region_info);
     }
     report.decode = Some(decode);
     timings.insert("total".into(), total.elapsed().as_secs_f64());

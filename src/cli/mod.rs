@@ -12,10 +12,13 @@ use std::path::{Path, PathBuf};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use psscan::maps::{MapOptions, NormalConvention};
 use psscan::offline::{self, BatchOptions, BatchSummary};
-use psscan::pipeline::{self, DemoSummary, SolveJob};
+use psscan::pipeline::{self, DemoSummary, RegionJob, SolveJob};
 use psscan::raw::{DevelopOptions, Resolution};
+use psscan::region::{Background, Roi};
 use psscan::rig::Rig;
-use psscan::solve::{Estimator, LightModel, Method, RobustOptions, SheenModel, SolveOptions};
+use psscan::solve::{
+    Estimator, LightModel, Method, Precision, RobustOptions, SheenModel, SolveOptions,
+};
 use psscan::synth::{FrameEncoding, Sheen, SynthSpec};
 
 use progress::Bars;
@@ -53,6 +56,25 @@ enum Command {
     /// Calibrate the rig: without a subcommand, the wizard (camera, table, white sheet, flatness
     /// check; resumable); `calibrate camera` runs one step over photographs.
     Calibrate(calibrate::CalibrateArgs),
+    /// Benchmark every solver variant on standard synthetic scenes: run time against error,
+    /// beside the memory-read floor and a NumPy peer.
+    Bench(BenchArgs),
+}
+
+#[derive(Args)]
+struct BenchArgs {
+    /// Folder for bench.md, bench.json and bench.svg.
+    #[arg(long, default_value = "docs/bench")]
+    out: PathBuf,
+    /// Scene sizes in megapixels, comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = vec![1.0, 16.0])]
+    sizes: Vec<f64>,
+    /// Timed runs per variant (median reported).
+    #[arg(long, default_value_t = 3)]
+    repeats: usize,
+    /// Do not run the NumPy peer even when python3 and numpy are present.
+    #[arg(long)]
+    no_numpy: bool,
 }
 
 #[derive(Args)]
@@ -193,6 +215,33 @@ struct SolveFlags {
     /// Do not subtract the set's all-off (dark) frame.
     #[arg(long)]
     no_dark: bool,
+    /// Precision of the streaming kernel; f32 (or --tile-tolerance) selects it, f64 without
+    /// tiles keeps the exact per-pixel kernel.
+    #[arg(long, value_enum, default_value_t = PrecisionArg::F64)]
+    precision: PrecisionArg,
+    /// Share light coefficients across tiles where that moves normals by at most this many
+    /// degrees (streaming kernel; e.g. 0.01).
+    #[arg(long, value_name = "DEG")]
+    tile_tolerance: Option<f64>,
+    /// Solve the luminance alone: the normal map, with the luminance albedo in every channel.
+    #[arg(long)]
+    normal_only: bool,
+    /// Solve only this pixel rectangle of the frames: x,y,width,height.
+    #[arg(long, value_name = "X,Y,W,H")]
+    roi: Option<String>,
+    /// 2: solve 2x2-binned frames (a half-resolution preview, 4x fewer pixels).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=2))]
+    bin: u8,
+    /// Background mask: none, auto (found from the frames), or an image file the size of
+    /// the frames (non-zero = sample); no work is done outside it.
+    #[arg(long, default_value = "none", value_name = "none|auto|FILE")]
+    background: String,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum PrecisionArg {
+    F64,
+    F32,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -216,8 +265,13 @@ enum LightModelArg {
 }
 
 impl SolveFlags {
-    fn job(&self) -> SolveJob {
-        SolveJob {
+    fn job(&self) -> anyhow::Result<SolveJob> {
+        Ok(SolveJob {
+            region: RegionJob {
+                roi: self.roi.as_deref().map(Roi::parse).transpose()?,
+                bin: self.bin as usize,
+                background: Background::parse(&self.background),
+            },
             options: SolveOptions {
                 method: match self.method {
                     MethodArg::Fast => Method::NormalEquations,
@@ -227,6 +281,12 @@ impl SolveFlags {
                     LightModelArg::Near => LightModel::Near,
                     LightModelArg::Distant => LightModel::Distant,
                 },
+                precision: match self.precision {
+                    PrecisionArg::F64 => Precision::F64,
+                    PrecisionArg::F32 => Precision::F32,
+                },
+                tile_tolerance_deg: self.tile_tolerance,
+                normal_only: self.normal_only,
                 estimator: self.estimator,
                 robust: RobustOptions {
                     sheen: self.sheen_fit.as_deref().map(|v| SheenModel {
@@ -258,7 +318,7 @@ impl SolveFlags {
                 },
                 subtract_dark: !self.no_dark,
             },
-        }
+        })
     }
 }
 
@@ -276,6 +336,7 @@ pub fn run() -> i32 {
         Command::Capture(args) => capture::capture(args, cli.json, &bars),
         Command::Lights(args) => capture::lights(args, cli.json),
         Command::Calibrate(args) => calibrate::calibrate(args, cli.json, &bars),
+        Command::Bench(args) => bench(args, cli.json, &bars),
     };
     match outcome {
         Ok(()) => 0,
@@ -306,10 +367,10 @@ fn print_json<T: serde::Serialize>(value: &T) {
 
 fn demo(args: &DemoArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     if args.firmware_sim {
-        return capture::demo_firmware_sim(&args.out, &args.scene, &args.solve.job(), json, bars);
+        return capture::demo_firmware_sim(&args.out, &args.scene, &args.solve.job()?, json, bars);
     }
     let spec = args.scene.spec();
-    let summary = pipeline::run_demo(&args.out, &spec, &args.solve.job(), bars)?;
+    let summary = pipeline::run_demo(&args.out, &spec, &args.solve.job()?, bars)?;
     if json {
         print_json(&summary);
     } else {
@@ -368,7 +429,7 @@ fn synth(args: &SynthArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
 }
 
 fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
-    let mut job = args.solve.job();
+    let mut job = args.solve.job()?;
     job.force = args.force;
     job.rig = args.rig.as_ref().map(|p| Rig::load(p)).transpose()?;
     if let [set] = args.sets.as_slice() {
@@ -482,4 +543,44 @@ fn print_solve(set: &Path, out: &Path, report: &psscan::maps::Report) {
         out.display(),
         report.timings_s.get("total").copied().unwrap_or(0.0)
     );
+}
+
+fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
+    if args.sizes.iter().any(|&s| !(s > 0.0 && s <= 64.0)) {
+        anyhow::bail!("--sizes: each size must be in (0, 64] megapixels");
+    }
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/numpy_ps.py");
+    let numpy = !args.no_numpy && psscan::bench::numpy_available() && script.exists();
+    if !args.no_numpy && !numpy {
+        eprintln!(
+            "psscan bench: python3 with numpy (and {}) not found; the NumPy peer is skipped \
+             (pip install numpy)",
+            script.display()
+        );
+    }
+    let options = psscan::bench::BenchOptions {
+        sizes_mp: args.sizes.clone(),
+        repeats: args.repeats.max(1),
+        numpy,
+        numpy_script: script,
+        scratch: std::env::temp_dir().join(format!("psscan-bench-{}", std::process::id())),
+    };
+    let result = psscan::bench::run(&options, bars);
+    let _ = std::fs::remove_dir_all(&options.scratch);
+    let result = result?;
+    psscan::bench::report::write(&result, &args.out)?;
+    if json {
+        print_json(&serde_json::json!({
+            "result": result,
+            "targets": psscan::bench::report::targets(&result),
+            "out": args.out,
+        }));
+    } else {
+        print!("{}", psscan::bench::report::markdown(&result));
+        println!(
+            "\nwrote {}/bench.md, bench.json, bench.svg",
+            args.out.display()
+        );
+    }
+    Ok(())
 }

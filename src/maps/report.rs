@@ -33,6 +33,9 @@ pub struct Report {
     /// Errors against ground truth, when the capture set has it (synthetic sets).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub truth: Option<TruthComparison>,
+    /// Crop, binning and background mask, when the solve did not cover every pixel.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub region: Option<crate::region::RegionInfo>,
     pub timings_s: BTreeMap<String, f64>,
     pub outputs: WrittenMaps,
     /// How the frames were decoded and prepared (capture sets).
@@ -93,6 +96,7 @@ impl Report {
                 mean: result.mean_predicted_error_deg(),
             },
             truth: None,
+            region: None,
             timings_s: BTreeMap::new(),
             outputs,
             decode: None,

@@ -51,13 +51,13 @@ impl Scratch {
 
 /// One row of every output plane, borrowed mutably so rows can be solved in parallel.
 pub struct RowOut<'a> {
-    normal: [&'a mut [f32]; 3],
-    albedo: [&'a mut [f32]; 3],
-    residual: &'a mut [f32],
-    predicted: &'a mut [f32],
-    condition: &'a mut [f32],
-    lights: &'a mut [u8],
-    fit: &'a mut [PixelFit],
+    pub(super) normal: [&'a mut [f32]; 3],
+    pub(super) albedo: [&'a mut [f32]; 3],
+    pub(super) residual: &'a mut [f32],
+    pub(super) predicted: &'a mut [f32],
+    pub(super) condition: &'a mut [f32],
+    pub(super) lights: &'a mut [u8],
+    pub(super) fit: &'a mut [PixelFit],
     pub status: &'a mut [PixelStatus],
     /// Pixels of this row that the robust fit was run on.
     pub escalated: usize,
@@ -307,7 +307,12 @@ impl<'a> Kernel<'a> {
             return;
         }
         let n = fit.n_lum / albedo_lum;
-        let albedo = fit.n_rgb.map(|nc| nc.dot(&n));
+        // A normal-only solve reports the luminance albedo in every channel.
+        let albedo = if self.options.normal_only {
+            [albedo_lum; 3]
+        } else {
+            fit.n_rgb.map(|nc| nc.dot(&n))
+        };
         let residual = fit.residual.unwrap_or_else(|| {
             let sum_sq: f64 = measurements
                 .iter()

@@ -234,10 +234,16 @@ impl<'a> Illumination<'a> {
     /// sample plane. Lights given as bare directions need no point (the origin stands in).
     #[inline]
     pub fn point(&self, x: usize, y: usize) -> Option<Vector3<f64>> {
+        self.point_at(x as f64, y as f64)
+    }
+
+    /// [`Illumination::point`] at a fractional pixel position.
+    #[inline]
+    pub fn point_at(&self, x: f64, y: f64) -> Option<Vector3<f64>> {
         match &self.mapper {
             None => Some(Vector3::zeros()),
             Some(mapper) => {
-                let (u, v) = self.window.to_sensor(x as f64, y as f64);
+                let (u, v) = self.window.to_sensor(x, y);
                 mapper.map(u, v)
             }
         }

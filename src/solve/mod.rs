@@ -9,11 +9,13 @@
 //! fewer than three lights, or with lights too close to coplanar, are flagged, never NaN.
 
 mod adaptive;
+mod fast;
 mod kernel;
 mod lights;
 mod predict;
 mod robust;
 mod sheen;
+pub mod tiles;
 
 use nalgebra::Vector3;
 use rayon::prelude::*;
@@ -41,6 +43,16 @@ pub enum Method {
     /// The seed's method: singular value decomposition of `L` (nalgebra, f64). Slower; the
     /// reference the fast path is checked against.
     Svd,
+}
+
+/// The floating-point type of the streaming kernel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Precision {
+    #[default]
+    F64,
+    /// Single precision: twice the lanes per vector; costs ~1e-4 degrees (see docs/bench).
+    F32,
 }
 
 /// Which estimator solves each pixel.
@@ -130,6 +142,22 @@ pub struct SolveOptions {
     pub max_condition: f64,
     /// Compute the per-pixel predicted error (a few more multiplies per light).
     pub predict_error: bool,
+    /// Precision of the streaming kernel. `F32`, or a tile tolerance, selects the streaming
+    /// kernel (`fast.rs`); `F64` without tiles keeps the exact per-pixel kernel.
+    pub precision: Precision,
+    /// Share light coefficients across tiles (interpolated from their corners) where that
+    /// moves normals by at most this many degrees; `None`: exact coefficients per pixel.
+    pub tile_tolerance_deg: Option<f64>,
+    /// Solve the luminance alone (one solve instead of three): the normal, and the luminance
+    /// albedo in every albedo channel.
+    pub normal_only: bool,
+}
+
+impl SolveOptions {
+    /// Whether the streaming kernel (least squares only) solves the pixels.
+    pub fn streaming(&self) -> bool {
+        self.precision == Precision::F32 || self.tile_tolerance_deg.is_some()
+    }
 }
 
 impl Default for SolveOptions {
@@ -142,6 +170,9 @@ impl Default for SolveOptions {
             dark_threshold_sigma: 3.0,
             max_condition: 1e3,
             predict_error: true,
+            precision: Precision::F64,
+            tile_tolerance_deg: None,
+            normal_only: false,
         }
     }
 }
@@ -229,7 +260,20 @@ pub struct SolveResult {
 
 impl SolveResult {
     fn new(width: usize, height: usize) -> Self {
-        let plane = |v| Plane::new(width, height, v);
+        let n = width * height;
+        // Zeroed memory is mapped lazily; asking for huge pages before the first write saves
+        // the kernel ~500 page faults per MB of output.
+        let plane = |v: f32| {
+            let mut p = Plane::new(width, height, 0.0);
+            huge_pages(&mut p.data);
+            if v != 0.0 {
+                p.data.fill(v);
+            }
+            p
+        };
+        let mut status = Vec::with_capacity(n);
+        huge_pages(status.spare_capacity_mut());
+        status.resize(n, PixelStatus::OutsideMask);
         SolveResult {
             width,
             height,
@@ -238,9 +282,9 @@ impl SolveResult {
             residual: plane(0.0),
             predicted_error_deg: plane(0.0),
             condition: plane(0.0),
-            lights_used: vec![0; width * height],
-            status: vec![PixelStatus::OutsideMask; width * height],
-            fit: vec![PixelFit::LeastSquares; width * height],
+            lights_used: vec![0; n],
+            status,
+            fit: vec![PixelFit::LeastSquares; n],
             escalated: 0,
             sheen_everywhere: false,
         }
@@ -284,6 +328,24 @@ impl SolveResult {
     }
 }
 
+/// Advises the kernel to back `data` with transparent huge pages (Linux; a hint only).
+fn huge_pages<T>(data: &mut [T]) {
+    #[cfg(target_os = "linux")]
+    {
+        const HUGE: usize = 2 << 20;
+        let start = data.as_mut_ptr() as usize;
+        let end = start + std::mem::size_of_val(data);
+        let (a, b) = (start.next_multiple_of(HUGE), end / HUGE * HUGE);
+        if b > a {
+            // SAFETY: the range lies inside `data`'s allocation; MADV_HUGEPAGE changes no
+            // contents, only how the pages are backed.
+            unsafe { libc::madvise(a as *mut libc::c_void, b - a, libc::MADV_HUGEPAGE) };
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = data;
+}
+
 /// Solves every pixel of the frames. Rows are solved in parallel (rayon); `progress` sees one
 /// step per row.
 pub fn solve(
@@ -306,6 +368,18 @@ pub fn solve(
 
     let mut result = SolveResult::new(width, height);
     progress.begin("solve", height as u64);
+    if options.streaming() {
+        solve_streaming(
+            input,
+            options,
+            &illumination,
+            &kernel,
+            &mut result,
+            progress,
+        );
+        progress.end();
+        return Ok(result);
+    }
     result.escalated = solve_pass(input, &kernel, &illumination, &mut result, progress, false);
     progress.end();
     if needs_sheen_everywhere(options, &result) {
@@ -366,6 +440,30 @@ fn needs_sheen_everywhere(options: &SolveOptions, result: &SolveResult) -> bool 
             > options.robust.sheen_scene_fraction * solved as f64
 }
 
+/// The streaming kernel at the requested precision and coefficient source.
+fn solve_streaming(
+    input: &SolveInput,
+    options: &SolveOptions,
+    illumination: &Illumination,
+    kernel: &kernel::Kernel,
+    result: &mut SolveResult,
+    progress: &dyn Progress,
+) {
+    let (w, h) = (input.frames.width, input.frames.height);
+    let coefficients = match options.tile_tolerance_deg {
+        Some(tolerance) => match tiles::plan(illumination, w, h, tolerance) {
+            Some(grid) => fast::Coefficients::Tiled(grid),
+            None => fast::Coefficients::PerPixel,
+        },
+        None => fast::Coefficients::PerPixel,
+    };
+    let ctx = fast::Context::new(input, options, illumination, &coefficients, kernel);
+    match options.precision {
+        Precision::F32 => fast::solve_rows::<f32>(&ctx, result, progress, fast::row_f32),
+        Precision::F64 => fast::solve_rows::<f64>(&ctx, result, progress, fast::row_f64),
+    }
+}
+
 fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illumination) -> Result<()> {
     let frames = input.frames.lights.len();
     if frames != lights.len() {
@@ -394,6 +492,26 @@ fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illuminatio
             input.exposure
         )));
     }
+    if let Some(t) = options.tile_tolerance_deg {
+        if !(t > 0.0 && t <= 1.0) {
+            return Err(Error::Invalid(format!(
+                "tile tolerance must be in (0, 1] degrees, got {t}"
+            )));
+        }
+    }
+    if options.streaming() && options.estimator != Estimator::LeastSquares {
+        return Err(Error::Invalid(format!(
+            "the streaming kernel (--precision f32, --tile-tolerance) is plain least squares: \
+             use --estimator ls, or drop those options for the {} estimator",
+            options.estimator.name()
+        )));
+    }
+    if options.streaming() && options.method == Method::Svd {
+        return Err(Error::Invalid(
+            "the SVD method is per pixel in f64 only: drop --precision f32 and --tile-tolerance"
+                .into(),
+        ));
+    }
     let condition_ok = options.max_condition > 1.0 && !options.max_condition.is_nan();
     let threshold_ok =
         options.dark_threshold_sigma >= 0.0 && options.dark_threshold_sigma.is_finite();
@@ -407,3 +525,6 @@ fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illuminatio
 
 #[cfg(test)]
 mod tests;
+
+#[cfg(test)]
+mod tests_fast;

@@ -1,0 +1,486 @@
+//! `psscan bench`: every solver variant on standard synthetic scenes, run time against mean
+//! angular error, beside the memory-read floor and a NumPy peer timed in the same run.
+//!
+//! Scenes are the synthetic textile under the default rig over the whole sensor field, at
+//! each requested size (1 MP: every 4th sensor pixel; 16 MP: the full 4928 x 3264 sensor),
+//! with sensor noise, decoded to linear planes with saturation masks as a camera's RAW would
+//! be. Each scene is rendered once per run.
+
+mod floor;
+mod numpy;
+pub mod report;
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::error::Result;
+use crate::eval::{self, angle_deg};
+use crate::plane::{Frames, SensorWindow};
+use crate::progress::{Progress, Silent};
+use crate::raw::Levels;
+use crate::rig::Rig;
+use crate::solve::{
+    self, Estimator, LightSource, Method, NoiseModel, PixelStatus, Precision, SolveInput,
+    SolveOptions, SolveResult,
+};
+use crate::synth::{expose, Noise, Scene, SceneOptions, Sheen, Textile};
+
+pub use floor::{input_bytes, read_all};
+pub use numpy::available as numpy_available;
+
+/// Above this size (megapixels) only the Lambertian scene is run.
+pub const LARGE_MP: f64 = 4.0;
+
+/// Tile tolerance of the benchmark's tiled variants (degrees).
+pub const TILE_TOLERANCE_DEG: f64 = 0.01;
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct BenchOptions {
+    /// Scene sizes in megapixels.
+    pub sizes_mp: Vec<f64>,
+    /// Timed runs per variant (the median is reported); slow variants run once at 16 MP.
+    pub repeats: usize,
+    /// Run the NumPy peer when python3 with numpy is found.
+    pub numpy: bool,
+    /// Where `benches/numpy_ps.py` is.
+    pub numpy_script: PathBuf,
+    /// Scratch folder for the NumPy peer's input.
+    pub scratch: PathBuf,
+}
+
+/// The standard scenes.
+#[derive(Clone, Copy, Debug, Serialize, PartialEq, Eq)]
+#[serde(rename_all = "kebab-case")]
+pub enum SceneKind {
+    Lambertian,
+    Shadows,
+    Sheen,
+    ShadowsSheen,
+}
+
+impl SceneKind {
+    pub const ALL: [SceneKind; 4] = [
+        SceneKind::Lambertian,
+        SceneKind::Shadows,
+        SceneKind::Sheen,
+        SceneKind::ShadowsSheen,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            SceneKind::Lambertian => "lambertian",
+            SceneKind::Shadows => "shadows",
+            SceneKind::Sheen => "sheen",
+            SceneKind::ShadowsSheen => "shadows+sheen",
+        }
+    }
+
+    fn options(self) -> SceneOptions {
+        let shadows = matches!(self, SceneKind::Shadows | SceneKind::ShadowsSheen);
+        SceneOptions {
+            shadows,
+            shadow_fill: if shadows { 0.15 } else { 0.0 },
+            sheen: matches!(self, SceneKind::Sheen | SceneKind::ShadowsSheen).then(Sheen::default),
+        }
+    }
+}
+
+/// A solver configuration under test.
+#[derive(Clone, Debug)]
+pub struct Variant {
+    pub name: String,
+    pub options: SolveOptions,
+}
+
+/// The variants every scene is solved with.
+pub fn variants() -> Vec<Variant> {
+    let base = SolveOptions {
+        estimator: Estimator::LeastSquares,
+        predict_error: false,
+        ..SolveOptions::default()
+    };
+    let v = |name: &str, options: SolveOptions| Variant {
+        name: name.into(),
+        options,
+    };
+    let streaming = |precision, tiles: Option<f64>, normal_only| SolveOptions {
+        precision,
+        tile_tolerance_deg: tiles,
+        normal_only,
+        ..base.clone()
+    };
+    let tiles = Some(TILE_TOLERANCE_DEG);
+    // The robust estimators (exact kernel, f64), with the predicted error they rely on.
+    let estimators = Estimator::ALL
+        .into_iter()
+        .filter(|&e| e != Estimator::LeastSquares)
+        .map(|estimator| {
+            v(
+                &format!("{} f64 per-pixel (exact kernel)", estimator.name()),
+                SolveOptions {
+                    estimator,
+                    ..SolveOptions::default()
+                },
+            )
+        });
+    let mut all = vec![
+        v("ls f64 per-pixel (exact kernel)", base.clone()),
+        v(
+            "svd f64 per-pixel",
+            SolveOptions {
+                method: Method::Svd,
+                ..base.clone()
+            },
+        ),
+        v(
+            "ls f64 per-pixel (exact kernel, predicted error)",
+            SolveOptions {
+                predict_error: true,
+                ..base.clone()
+            },
+        ),
+        v(
+            "ls f64 distant lights (exact kernel)",
+            SolveOptions {
+                light_model: solve::LightModel::Distant,
+                ..base.clone()
+            },
+        ),
+        v("fast f64 per-pixel", streaming(Precision::F64, None, false)),
+        v("fast f64 tiled", streaming(Precision::F64, tiles, false)),
+        v("fast f32 per-pixel", streaming(Precision::F32, None, false)),
+        v("fast f32 tiled", streaming(Precision::F32, tiles, false)),
+        v(
+            "fast f32 tiled normal-only",
+            streaming(Precision::F32, tiles, true),
+        ),
+    ];
+    all.extend(estimators);
+    all
+}
+
+/// The name of the variant the speed targets are measured on.
+pub const FAST_LS: &str = "fast f32 tiled";
+/// The exact least-squares kernel every variant's deviation is measured against.
+pub const EXACT_LS: &str = "ls f64 per-pixel (exact kernel)";
+
+/// One timed solve.
+#[derive(Clone, Debug, Serialize)]
+pub struct Row {
+    pub scene: String,
+    pub megapixels: f64,
+    pub width: usize,
+    pub height: usize,
+    pub variant: String,
+    pub seconds: f64,
+    pub runs: usize,
+    /// Time over the memory-read floor of the same scene.
+    pub over_floor: f64,
+    pub mean_error_deg: f64,
+    pub p95_error_deg: f64,
+    /// Largest and mean angle between this variant's normals and the exact least-squares
+    /// kernel's, over pixels both solved (`None` for peers and the floor).
+    pub max_dev_from_exact_deg: Option<f64>,
+    pub mean_dev_from_exact_deg: Option<f64>,
+    pub solved_fraction: f64,
+}
+
+/// Peak memory of one solve.
+#[derive(Clone, Debug, Serialize)]
+pub struct Memory {
+    pub variant: String,
+    pub scene: String,
+    pub megapixels: f64,
+    pub input_bytes: usize,
+    /// Heap bytes live at the solve's peak that belong to it: its input plus everything it
+    /// allocated (outputs, temporaries); other live data of the benchmark is not counted.
+    pub peak_bytes: usize,
+    pub ratio: f64,
+}
+
+/// Everything one benchmark run measured.
+#[derive(Clone, Debug, Serialize)]
+pub struct BenchResult {
+    pub threads: usize,
+    pub cpu: String,
+    pub rows: Vec<Row>,
+    pub memory: Vec<Memory>,
+    pub numpy: Option<String>,
+    /// Estimated interpolation error of the tile grid at each size, and the tile size chosen.
+    pub tiles: Vec<(f64, usize, f64)>,
+    pub seconds: f64,
+}
+
+/// Renders `kind` at `mp` megapixels over the whole sensor field with sensor noise, as decoded
+/// frames (with saturation masks), and its ground truth.
+pub fn render_scene<'r>(
+    rig: &'r Rig,
+    kind: SceneKind,
+    mp: f64,
+    progress: &dyn Progress,
+) -> Result<(Scene<'r>, Frames)> {
+    let (sw, sh) = (rig.camera.width as usize, rig.camera.height as usize);
+    let scale = (mp * 1e6 / (sw * sh) as f64).sqrt().min(1.0);
+    let (w, h) = (
+        ((sw as f64 * scale).round() as usize).max(1),
+        ((sh as f64 * scale).round() as usize).max(1),
+    );
+    render_window(rig, kind, (w, h), sw as f64 / w as f64, progress)
+}
+
+/// Renders `kind` on a `w x h` window centred on the sensor, every `step` sensor pixels, with
+/// sensor noise, as decoded frames (with saturation masks), and its ground truth.
+pub fn render_window<'r>(
+    rig: &'r Rig,
+    kind: SceneKind,
+    (w, h): (usize, usize),
+    step: f64,
+    progress: &dyn Progress,
+) -> Result<(Scene<'r>, Frames)> {
+    let (sw, sh) = (rig.camera.width as usize, rig.camera.height as usize);
+    let window = SensorWindow::centred(sw, sh, w, h, step);
+    let scene = Scene::build(
+        rig,
+        Textile::default(),
+        w,
+        h,
+        window,
+        kind.options(),
+        progress,
+    )?;
+    let levels = Levels::from_sensor(&rig.sensor);
+    progress.begin("render", rig.leds.len() as u64);
+    let lights = (0..rig.leds.len())
+        .map(|k| {
+            let linear = scene.render_light(k, 1.0);
+            let frame = expose(&linear, &rig.sensor, Noise::Seeded(7), k as u64 + 1)
+                .to_light_frame(&levels);
+            progress.advance(1);
+            frame
+        })
+        .collect();
+    progress.end();
+    let frames = Frames {
+        width: w,
+        height: h,
+        window,
+        lights,
+    };
+    Ok((scene, frames))
+}
+
+fn solve_once(rig: &Rig, frames: &Frames, options: &SolveOptions) -> Result<(SolveResult, f64)> {
+    let input = SolveInput {
+        frames,
+        lights: LightSource::Rig(rig),
+        noise: crate::pipeline::noise_model(rig, &Levels::from_sensor(&rig.sensor)),
+        exposure: 1.0,
+        mask: None,
+    };
+    let start = Instant::now();
+    let result = solve::solve(&input, options, &Silent)?;
+    Ok((result, start.elapsed().as_secs_f64()))
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Angle statistics between two solves' normals over pixels both solved: (max, mean).
+pub fn deviation_deg(a: &SolveResult, b: &SolveResult) -> (f64, f64) {
+    let (mut max, mut sum, mut n) = (0f64, 0f64, 0usize);
+    for i in 0..a.status.len() {
+        if a.status[i] == PixelStatus::Solved && b.status[i] == PixelStatus::Solved {
+            let e = angle_deg(&a.normal_at(i), &b.normal_at(i));
+            max = max.max(e);
+            sum += e;
+            n += 1;
+        }
+    }
+    (max, if n > 0 { sum / n as f64 } else { 0.0 })
+}
+
+/// Runs the benchmark; `progress` sees one step per scene.
+pub fn run(options: &BenchOptions, progress: &dyn Progress) -> Result<BenchResult> {
+    let total = Instant::now();
+    let rig = Rig::default_rig();
+    let mut rows = Vec::new();
+    let mut memory = Vec::new();
+    let mut tiles = Vec::new();
+    let mut numpy_version = None;
+    let variants = variants();
+    progress.begin(
+        "bench",
+        (options.sizes_mp.len() * SceneKind::ALL.len()) as u64,
+    );
+    for &mp in &options.sizes_mp {
+        // Large scenes are for the speed targets: the Lambertian scene only (rendering and
+        // solving every scene at 16 MP would take most of an hour on two cores).
+        let kinds: &[SceneKind] = if mp > LARGE_MP {
+            &[SceneKind::Lambertian]
+        } else {
+            &SceneKind::ALL
+        };
+        for &kind in kinds {
+            let (scene, frames) = render_scene(&rig, kind, mp, &Silent)?;
+            let label = |variant: &str, seconds: f64, runs: usize| Row {
+                scene: kind.name().into(),
+                megapixels: (frames.width * frames.height) as f64 / 1e6,
+                width: frames.width,
+                height: frames.height,
+                variant: variant.into(),
+                seconds,
+                runs,
+                over_floor: 0.0,
+                mean_error_deg: 0.0,
+                p95_error_deg: 0.0,
+                max_dev_from_exact_deg: None,
+                mean_dev_from_exact_deg: None,
+                solved_fraction: 0.0,
+            };
+            let floor_s = median(
+                (0..options.repeats.max(3))
+                    .map(|_| {
+                        let start = Instant::now();
+                        std::hint::black_box(read_all(&frames));
+                        start.elapsed().as_secs_f64()
+                    })
+                    .collect(),
+            );
+            let mut floor_row = label("memory-read floor", floor_s, options.repeats.max(3));
+            floor_row.over_floor = 1.0;
+            let mut scene_rows = vec![floor_row];
+            let mut exact: Option<SolveResult> = None;
+            for variant in &variants {
+                let slow =
+                    !variant.options.streaming() || variant.options.tile_tolerance_deg.is_none();
+                let runs = if slow && mp > LARGE_MP {
+                    1
+                } else {
+                    options.repeats
+                };
+                let mut times = Vec::new();
+                let mut result = None;
+                for _ in 0..runs {
+                    drop(result.take());
+                    let (r, t) = solve_once(&rig, &frames, &variant.options)?;
+                    times.push(t);
+                    result = Some(r);
+                }
+                let result = result.expect("at least one run");
+                let mut row = label(&variant.name, median(times), runs);
+                fill_errors(&mut row, &result, &scene, floor_s);
+                if let Some(e) = &exact {
+                    let (max, mean) = deviation_deg(&result, e);
+                    row.max_dev_from_exact_deg = Some(max);
+                    row.mean_dev_from_exact_deg = Some(mean);
+                }
+                if variant.name == EXACT_LS {
+                    exact = Some(result);
+                }
+                scene_rows.push(row);
+            }
+            drop(exact);
+            if kind == SceneKind::Lambertian {
+                memory.push(measure_memory(&rig, &frames, kind, mp)?);
+                let grid = solve::tiles::plan(
+                    &solve::Illumination::new(
+                        &LightSource::Rig(&rig),
+                        solve::LightModel::Near,
+                        frames.width,
+                        frames.height,
+                        frames.window,
+                    )?,
+                    frames.width,
+                    frames.height,
+                    TILE_TOLERANCE_DEG,
+                );
+                if let Some(g) = grid {
+                    tiles.push((mp, g.tile, g.estimated_max_error_deg));
+                }
+                if options.numpy {
+                    match numpy::run(&rig, &frames, &scene, options) {
+                        Ok(peer) => {
+                            numpy_version = Some(peer.version.clone());
+                            for (name, seconds, error) in peer.rows() {
+                                let mut row = label(&name, seconds, options.repeats);
+                                row.over_floor = seconds / floor_s;
+                                row.mean_error_deg = error.mean;
+                                row.p95_error_deg = error.p95;
+                                row.solved_fraction = 1.0;
+                                scene_rows.push(row);
+                            }
+                        }
+                        Err(e) => eprintln!("psscan bench: NumPy peer skipped: {e}"),
+                    }
+                }
+            }
+            rows.extend(scene_rows);
+            progress.advance(1);
+        }
+    }
+    progress.end();
+    Ok(BenchResult {
+        threads: rayon::current_num_threads(),
+        cpu: cpu_name(),
+        rows,
+        memory,
+        numpy: numpy_version,
+        tiles,
+        seconds: total.elapsed().as_secs_f64(),
+    })
+}
+
+fn fill_errors(row: &mut Row, result: &SolveResult, scene: &Scene, floor_s: f64) {
+    let cmp = eval::compare(result, &scene.truth.normal, &scene.truth.albedo);
+    row.over_floor = row.seconds / floor_s;
+    row.mean_error_deg = cmp.normal_error_deg.mean;
+    row.p95_error_deg = cmp.normal_error_deg.p95;
+    row.solved_fraction = cmp.pixels as f64 / result.status.len().max(1) as f64;
+}
+
+/// Peak heap of the fast least-squares solve against its decoded input.
+fn measure_memory(rig: &Rig, frames: &Frames, kind: SceneKind, mp: f64) -> Result<Memory> {
+    let options = variants()
+        .into_iter()
+        .find(|v| v.name == FAST_LS)
+        .expect("the fast variant exists")
+        .options;
+    let input = input_bytes(frames);
+    let before = crate::alloc::current();
+    crate::alloc::reset_peak();
+    let (result, _) = solve_once(rig, frames, &options)?;
+    let peak = crate::alloc::peak();
+    drop(result);
+    // The solve's own peak: its input plus what it added on top of everything live before.
+    let peak_bytes = input + peak.saturating_sub(before);
+    Ok(Memory {
+        variant: FAST_LS.into(),
+        scene: kind.name().into(),
+        megapixels: mp,
+        input_bytes: input,
+        peak_bytes,
+        ratio: peak_bytes as f64 / input as f64,
+    })
+}
+
+fn cpu_name() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown".into())
+}
+
+/// The noise model the benchmark's frames were exposed with.
+pub fn bench_noise(rig: &Rig) -> NoiseModel {
+    crate::pipeline::noise_model(rig, &Levels::from_sensor(&rig.sensor))
+}

@@ -1,0 +1,230 @@
+//! The benchmark's outputs: a markdown table with the speed-target summary, the JSON, and an
+//! SVG plot of run time against mean angular error (plotters).
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use plotters::prelude::*;
+
+use super::{BenchResult, Row, EXACT_LS, FAST_LS};
+use crate::error::{Error, Result};
+
+/// The headline ratios at one size.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Targets {
+    pub megapixels: f64,
+    pub fast_s: f64,
+    pub floor_s: f64,
+    pub over_floor: f64,
+    pub numpy_s: Option<f64>,
+    pub numpy_over_fast: Option<f64>,
+    pub exact_s: f64,
+    pub exact_over_fast: f64,
+}
+
+/// Speed-target figures on the Lambertian scene at each size.
+pub fn targets(result: &BenchResult) -> Vec<Targets> {
+    let mut sizes: Vec<f64> = result
+        .rows
+        .iter()
+        .filter(|r| r.scene == "lambertian")
+        .map(|r| r.megapixels)
+        .collect();
+    sizes.dedup();
+    sizes
+        .into_iter()
+        .filter_map(|mp| {
+            let find = |name: &str| {
+                result.rows.iter().find(|r| {
+                    r.scene == "lambertian" && r.megapixels == mp && r.variant.starts_with(name)
+                })
+            };
+            let fast = find(FAST_LS)?;
+            let floor = find("memory-read floor")?;
+            let exact = find(EXACT_LS)?;
+            let numpy = find("numpy pinv, 4 solves (distant)").map(|r| r.seconds);
+            Some(Targets {
+                megapixels: mp,
+                fast_s: fast.seconds,
+                floor_s: floor.seconds,
+                over_floor: fast.seconds / floor.seconds,
+                numpy_s: numpy,
+                numpy_over_fast: numpy.map(|n| n / fast.seconds),
+                exact_s: exact.seconds,
+                exact_over_fast: exact.seconds / fast.seconds,
+            })
+        })
+        .collect()
+}
+
+fn opt(v: Option<f64>, digits: usize) -> String {
+    v.map_or("-".into(), |v| format!("{v:.digits$}"))
+}
+
+/// The markdown report.
+pub fn markdown(result: &BenchResult) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "# psscan bench\n\n{} threads on {}; whole run {:.0} s. NumPy: {}.\n",
+        result.threads,
+        result.cpu,
+        result.seconds,
+        result.numpy.as_deref().unwrap_or("not run")
+    );
+    let _ = writeln!(
+        s,
+        "## Speed targets (Lambertian scene, 10 lights, RGB + luminance)\n"
+    );
+    let _ = writeln!(
+        s,
+        "| MP | {FAST_LS} (s) | read floor (s) | x floor | NumPy (s) | NumPy / fast | exact kernel / fast |\n|---|---|---|---|---|---|---|"
+    );
+    for t in targets(result) {
+        let _ = writeln!(
+            s,
+            "| {:.1} | {:.3} | {:.3} | {:.2} | {} | {} | {:.1} |",
+            t.megapixels,
+            t.fast_s,
+            t.floor_s,
+            t.over_floor,
+            opt(t.numpy_s, 3),
+            opt(t.numpy_over_fast, 2),
+            t.exact_over_fast
+        );
+    }
+    for m in &result.memory {
+        let _ = writeln!(
+            s,
+            "\nPeak memory of `{}` at {:.0} MP: {:.2} GB for {:.2} GB of decoded input = **{:.2}x**.",
+            m.variant,
+            m.megapixels,
+            m.peak_bytes as f64 / 1e9,
+            m.input_bytes as f64 / 1e9,
+            m.ratio
+        );
+    }
+    for (mp, tile, err) in &result.tiles {
+        let _ = writeln!(
+            s,
+            "\nTile grid at {mp:.0} MP: {tile} px tiles, estimated interpolation error {err:.5} deg."
+        );
+    }
+    let _ = writeln!(
+        s,
+        "\n## All runs\n\n`dev` = angle to the exact f64 least-squares kernel's normals on the same frames.\n\n| scene | MP | variant | time (s) | x floor | mean err (deg) | p95 err (deg) | max dev (deg) | mean dev (deg) | solved |\n|---|---|---|---|---|---|---|---|---|---|"
+    );
+    for r in &result.rows {
+        let _ = writeln!(
+            s,
+            "| {} | {:.1} | {} | {:.3} | {:.2} | {:.4} | {:.4} | {} | {} | {:.2} % |",
+            r.scene,
+            r.megapixels,
+            r.variant,
+            r.seconds,
+            r.over_floor,
+            r.mean_error_deg,
+            r.p95_error_deg,
+            opt(r.max_dev_from_exact_deg, 6),
+            opt(r.mean_dev_from_exact_deg, 6),
+            100.0 * r.solved_fraction
+        );
+    }
+    s
+}
+
+/// Writes `bench.md`, `bench.json` and `bench.svg` into `dir`.
+pub fn write(result: &BenchResult, dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let md = dir.join("bench.md");
+    std::fs::write(&md, markdown(result)).map_err(|e| Error::io(&md, e))?;
+    let json = dir.join("bench.json");
+    let value = serde_json::json!({ "result": result, "targets": targets(result) });
+    let text = serde_json::to_string_pretty(&value).expect("serialisable");
+    std::fs::write(&json, text).map_err(|e| Error::io(&json, e))?;
+    plot(result, &dir.join("bench.svg"))
+}
+
+/// Run time against mean angular error, one panel per scene at the largest size; the floor
+/// is drawn as a vertical line (it has no error).
+pub fn plot(result: &BenchResult, path: &Path) -> Result<()> {
+    let size = result.rows.iter().map(|r| r.megapixels).fold(0.0, f64::max);
+    let scenes: Vec<String> = {
+        let mut v: Vec<String> = result.rows.iter().map(|r| r.scene.clone()).collect();
+        v.dedup();
+        v
+    };
+    let fail = |e: &dyn std::fmt::Display| Error::Invalid(format!("plot {}: {e}", path.display()));
+    let root =
+        SVGBackend::new(path, (1200, 420 * scenes.len().div_ceil(2) as u32)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| fail(&e))?;
+    let panels = root.split_evenly((scenes.len().div_ceil(2), 2));
+    for (scene, area) in scenes.iter().zip(panels.iter()) {
+        let rows: Vec<&Row> = result
+            .rows
+            .iter()
+            .filter(|r| &r.scene == scene && r.megapixels == size)
+            .collect();
+        draw_panel(area, scene, size, &rows).map_err(|e| fail(&e))?;
+    }
+    root.present().map_err(|e| fail(&e))?;
+    Ok(())
+}
+
+type Panel<'a> = DrawingArea<SVGBackend<'a>, plotters::coord::Shift>;
+
+fn draw_panel(
+    area: &Panel,
+    scene: &str,
+    size: f64,
+    rows: &[&Row],
+) -> std::result::Result<(), Box<dyn std::error::Error>> {
+    let timed: Vec<&&Row> = rows.iter().filter(|r| r.seconds > 0.0).collect();
+    let t_min = timed.iter().map(|r| r.seconds).fold(f64::MAX, f64::min) / 1.5;
+    let t_max = timed.iter().map(|r| r.seconds).fold(0.0, f64::max) * 1.5;
+    let solved: Vec<&&Row> = timed
+        .iter()
+        .copied()
+        .filter(|r| r.mean_error_deg > 0.0)
+        .collect();
+    let e_max = solved.iter().map(|r| r.mean_error_deg).fold(0.0, f64::max) * 1.15;
+    let mut chart = ChartBuilder::on(area)
+        .caption(format!("{scene}, {size:.0} MP"), ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(36)
+        .y_label_area_size(52)
+        .build_cartesian_2d((t_min..t_max).log_scale(), 0.0..e_max.max(1e-3))?;
+    chart
+        .configure_mesh()
+        .x_desc("run time (s, log)")
+        .y_desc("mean angular error (deg)")
+        .draw()?;
+    for (i, r) in solved.iter().enumerate() {
+        let colour = HSLColor(i as f64 / solved.len().max(1) as f64, 0.8, 0.4);
+        chart
+            .draw_series(std::iter::once(Circle::new(
+                (r.seconds, r.mean_error_deg),
+                5,
+                colour.filled(),
+            )))?
+            .label(r.variant.clone())
+            .legend(move |(x, y)| Circle::new((x, y), 4, colour.filled()));
+    }
+    if let Some(floor) = rows.iter().find(|r| r.variant == "memory-read floor") {
+        chart
+            .draw_series(LineSeries::new(
+                [(floor.seconds, 0.0), (floor.seconds, e_max.max(1e-3))],
+                BLACK.stroke_width(2),
+            ))?
+            .label("memory-read floor")
+            .legend(|(x, y)| PathElement::new([(x, y - 6), (x, y + 6)], BLACK.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .position(SeriesLabelPosition::UpperRight)
+        .label_font(("sans-serif", 11))
+        .draw()?;
+    Ok(())
+}

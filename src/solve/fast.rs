@@ -1,0 +1,690 @@
+//! The streaming least-squares kernel: the same near-light solve as `kernel.rs`, restructured
+//! for speed.
+//!
+//! - Three solves, not four: the luminance measurement is a fixed combination of R, G and B and
+//!   a pixel's fit uses the same lights for every channel, so `N_lum = sum_c w_c N_c` exactly.
+//! - No per-pixel light model evaluation: each light's direction and inverse falloff come from
+//!   [`super::tiles`] (exact per pixel, or interpolated across tiles).
+//! - Per pixel, the normal equations of the lights that pass the dark / saturated / finite
+//!   tests (textiles shadow some light at a third of their pixels, so this is the common case,
+//!   not a fallback), inverted in closed form, the residual from a second pass over the lights.
+//! - Structure of arrays in chunks of [`LANES`] pixels of one row, in `f32` or `f64`, so LLVM
+//!   vectorises the lanes (lights failing a test are blended out, not branched around);
+//!   AVX-512 or AVX2 with FMA is chosen at run time, the baseline build stays portable. Rows run in
+//!   parallel (rayon) and each reads each input plane once.
+//!
+//! Pixels left with fewer than three lights, degenerate or non-finite results, or in a tile
+//! whose corners cannot be solved, are handed to the exact per-pixel kernel, which names the
+//! reason. Fast-path pixels get normal, albedo, residual, condition number and lights used;
+//! their predicted error is left 0 (only the exact kernel computes it).
+
+use rayon::prelude::*;
+
+use super::kernel::{Kernel, RowOut, Scratch};
+use super::lights::Illumination;
+use super::tiles::{self, exact_coefficients, TileGrid};
+use super::{PixelStatus, SolveInput, SolveOptions, SolveResult, LUMINANCE_WEIGHTS};
+use crate::plane::Frames;
+use crate::progress::Progress;
+
+/// Pixels processed together (one vector register of f32 on AVX-512, two on AVX2).
+pub const LANES: usize = 16;
+
+/// The floating-point type the kernel computes in.
+pub trait Real:
+    num_traits::Float + Copy + Send + Sync + Default + std::ops::AddAssign + 'static
+{
+    fn of(v: f64) -> Self;
+    fn of32(v: f32) -> Self;
+    fn to32(self) -> f32;
+}
+
+impl Real for f32 {
+    #[inline(always)]
+    fn of(v: f64) -> Self {
+        v as f32
+    }
+    #[inline(always)]
+    fn of32(v: f32) -> Self {
+        v
+    }
+    #[inline(always)]
+    fn to32(self) -> f32 {
+        self
+    }
+}
+
+impl Real for f64 {
+    #[inline(always)]
+    fn of(v: f64) -> Self {
+        v
+    }
+    #[inline(always)]
+    fn of32(v: f32) -> Self {
+        v as f64
+    }
+    #[inline(always)]
+    fn to32(self) -> f32 {
+        self as f32
+    }
+}
+
+/// `LANES` values operated on together: each operation is a loop over the lanes, which LLVM
+/// turns into vector instructions.
+#[derive(Clone, Copy)]
+struct V<T>([T; LANES]);
+
+impl<T: Real> V<T> {
+    #[inline(always)]
+    fn splat(v: T) -> Self {
+        V([v; LANES])
+    }
+    #[inline(always)]
+    fn sqrt(self) -> Self {
+        V(self.0.map(|v| v.sqrt()))
+    }
+    #[inline(always)]
+    fn max(self, floor: T) -> Self {
+        V(self.0.map(|v| if v > floor { v } else { floor }))
+    }
+}
+
+macro_rules! lane_op {
+    ($trait:ident, $method:ident, $op:tt) => {
+        impl<T: Real> std::ops::$trait for V<T> {
+            type Output = V<T>;
+            #[inline(always)]
+            fn $method(self, o: V<T>) -> V<T> {
+                let mut out = self.0;
+                for l in 0..LANES {
+                    out[l] = self.0[l] $op o.0[l];
+                }
+                V(out)
+            }
+        }
+        impl<T: Real> std::ops::$trait<T> for V<T> {
+            type Output = V<T>;
+            #[inline(always)]
+            fn $method(self, o: T) -> V<T> {
+                V(self.0.map(|v| v $op o))
+            }
+        }
+    };
+}
+lane_op!(Add, add, +);
+lane_op!(Sub, sub, -);
+lane_op!(Mul, mul, *);
+lane_op!(Div, div, /);
+
+/// Where the coefficients come from.
+pub enum Coefficients {
+    /// Computed exactly at every pixel.
+    PerPixel,
+    /// Interpolated across tiles.
+    Tiled(TileGrid),
+}
+
+/// What the streaming kernel needs, shared by all rows.
+pub struct Context<'a> {
+    frames: &'a Frames,
+    illumination: &'a Illumination<'a>,
+    coefficients: &'a Coefficients,
+    exact: &'a Kernel<'a>,
+    mask: Option<&'a crate::plane::Mask>,
+    /// `s_ck`: exposure over the LED's colour scale, per light and channel.
+    scale: Vec<[f64; 3]>,
+    dark_threshold: f64,
+    max_condition: f64,
+    normal_only: bool,
+}
+
+impl<'a> Context<'a> {
+    pub fn new(
+        input: &'a SolveInput,
+        options: &SolveOptions,
+        illumination: &'a Illumination<'a>,
+        coefficients: &'a Coefficients,
+        exact: &'a Kernel<'a>,
+    ) -> Self {
+        let inv_exposure = 1.0 / input.exposure;
+        Context {
+            frames: input.frames,
+            illumination,
+            coefficients,
+            exact,
+            mask: input.mask,
+            scale: (0..illumination.len())
+                .map(|k| illumination.rgb_scale(k).map(|s| inv_exposure / s))
+                .collect(),
+            dark_threshold: options.dark_threshold_sigma
+                * input
+                    .noise
+                    .luminance_floor_variance(&LUMINANCE_WEIGHTS)
+                    .sqrt(),
+            max_condition: options.max_condition,
+            normal_only: options.normal_only,
+        }
+    }
+}
+
+/// Per-thread buffers.
+pub struct RowScratch<T> {
+    /// Coefficients of the current chunk: `stride` rows of `LANES` values.
+    coef: Vec<[T; LANES]>,
+    /// Node coefficients interpolated to the current row, per node column, and their slope
+    /// toward the next node column.
+    row_left: Vec<T>,
+    row_slope: Vec<T>,
+    exact: Scratch,
+    pixel: Vec<f64>,
+}
+
+/// Solves all rows with the streaming kernel in precision `T`.
+pub fn solve_rows<T: Real>(
+    ctx: &Context,
+    result: &mut SolveResult,
+    progress: &dyn Progress,
+    row_fn: fn(&Context, usize, &mut RowOut, &mut RowScratch<T>),
+) {
+    let stride = tiles::stride(ctx.illumination.len());
+    let nodes_x = match ctx.coefficients {
+        Coefficients::Tiled(g) => g.nodes_x,
+        Coefficients::PerPixel => 0,
+    };
+    let rows = RowOut::split(result);
+    rows.into_par_iter().enumerate().for_each_init(
+        || RowScratch::<T> {
+            coef: vec![[T::zero(); LANES]; stride],
+            row_left: vec![T::zero(); nodes_x * stride],
+            row_slope: vec![T::zero(); nodes_x * stride],
+            exact: Scratch::with_capacity(ctx.illumination.len()),
+            pixel: vec![0.0; stride],
+        },
+        |scratch, (y, mut row)| {
+            row_fn(ctx, y, &mut row, scratch);
+            progress.advance(1);
+        },
+    );
+}
+
+/// The f32 kernel: AVX-512 or AVX2 with fused multiply-add where the CPU has them (checked
+/// at run time, cached by std), the portable build otherwise.
+pub fn row_f32(ctx: &Context, y: usize, row: &mut RowOut, scratch: &mut RowScratch<f32>) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if simd::avx512() {
+            // SAFETY: the CPU has the features `row_avx512` is compiled for.
+            return unsafe { simd::row_avx512(ctx, y, row, scratch) };
+        }
+        if simd::avx2() {
+            // SAFETY: as above.
+            return unsafe { simd::row_avx2(ctx, y, row, scratch) };
+        }
+    }
+    solve_row::<f32, false>(ctx, y, row, scratch)
+}
+
+/// The f64 kernel, dispatched as [`row_f32`].
+pub fn row_f64(ctx: &Context, y: usize, row: &mut RowOut, scratch: &mut RowScratch<f64>) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if simd::avx512() {
+            // SAFETY: the CPU has the features `row_avx512` is compiled for.
+            return unsafe { simd::row_avx512(ctx, y, row, scratch) };
+        }
+        if simd::avx2() {
+            // SAFETY: as above.
+            return unsafe { simd::row_avx2(ctx, y, row, scratch) };
+        }
+    }
+    solve_row::<f64, false>(ctx, y, row, scratch)
+}
+
+/// The kernel compiled for wider vectors and fused multiply-add.
+#[cfg(target_arch = "x86_64")]
+mod simd {
+    use super::{solve_row, Context, Real, RowOut, RowScratch};
+
+    /// `PSSCAN_PORTABLE_KERNEL=1` forces the portable build (to compare, or to test it).
+    fn allowed() -> bool {
+        static PORTABLE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        !*PORTABLE.get_or_init(|| std::env::var_os("PSSCAN_PORTABLE_KERNEL").is_some())
+    }
+
+    pub fn avx512() -> bool {
+        allowed()
+            && is_x86_feature_detected!("avx512f")
+            && is_x86_feature_detected!("avx512bw")
+            && is_x86_feature_detected!("avx512vl")
+            && avx2()
+    }
+
+    pub fn avx2() -> bool {
+        allowed() && is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma")
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2,fma")]
+    pub unsafe fn row_avx512<T: Real>(
+        ctx: &Context,
+        y: usize,
+        row: &mut RowOut,
+        s: &mut RowScratch<T>,
+    ) {
+        solve_row::<T, true>(ctx, y, row, s)
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn row_avx2<T: Real>(
+        ctx: &Context,
+        y: usize,
+        row: &mut RowOut,
+        s: &mut RowScratch<T>,
+    ) {
+        solve_row::<T, true>(ctx, y, row, s)
+    }
+}
+
+/// `a * b + c`, fused where the CPU has FMA (`FMA` is only set in code compiled for it: a
+/// fused multiply-add without the instruction is a slow library call).
+#[inline(always)]
+fn madd<T: Real, const FMA: bool>(a: T, b: T, c: T) -> T {
+    if FMA {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
+}
+
+#[inline(always)]
+fn solve_row<T: Real, const FMA: bool>(
+    ctx: &Context,
+    y: usize,
+    row: &mut RowOut,
+    scratch: &mut RowScratch<T>,
+) {
+    let w = ctx.frames.width;
+    if w < LANES {
+        for x in 0..w {
+            exact_pixel(ctx, y, x, row, scratch);
+        }
+        return;
+    }
+    if let Coefficients::Tiled(grid) = ctx.coefficients {
+        prepare_row(grid, y, ctx.frames.height, w, scratch);
+    }
+    let mut x0 = 0;
+    while x0 < w {
+        // The last chunk is shifted left to stay whole; its overlap is solved twice, the same.
+        let x = x0.min(w - LANES);
+        x0 += LANES;
+        let mut inside = [true; LANES];
+        if let Some(mask) = ctx.mask {
+            let m = &mask.data[y * w + x..y * w + x + LANES];
+            inside.copy_from_slice(m);
+            if !inside.iter().any(|&b| b) {
+                continue;
+            }
+        }
+        prefetch(ctx.frames, y * w + x + PREFETCH_AHEAD);
+        let (mut valid, linear) = fill_coefficients(ctx, x, y, scratch);
+        for l in 0..LANES {
+            valid[l] &= inside[l];
+        }
+        let stride = scratch.coef.len();
+        let source = match linear {
+            Some((jx, offset)) => Source::Linear {
+                left: &scratch.row_left[jx * stride..(jx + 1) * stride],
+                slope: &scratch.row_slope[jx * stride..(jx + 1) * stride],
+                offset,
+            },
+            None => Source::Table(&scratch.coef),
+        };
+        let ok = solve_chunk::<T, FMA>(ctx, y * w + x, &source, valid, row, x);
+        for l in 0..LANES {
+            if inside[l] && !ok[l] {
+                exact_pixel(ctx, y, x + l, row, scratch);
+            } else if !inside[l] {
+                reset_pixel(row, x + l, PixelStatus::OutsideMask);
+            }
+        }
+    }
+}
+
+/// How far ahead of the current chunk (pixels) the input planes are prefetched: the kernel
+/// reads ~40 streams at once (30 colour planes, 10 masks), more than the hardware prefetchers
+/// track, so without this every chunk waits for memory.
+const PREFETCH_AHEAD: usize = 256;
+
+/// Asks the CPU to start loading the cache lines at pixel index `i` of every input plane.
+#[inline(always)]
+fn prefetch(frames: &Frames, i: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let n = frames.width * frames.height;
+        if i >= n {
+            return;
+        }
+        for f in &frames.lights {
+            for p in f.rgb.channels() {
+                // SAFETY: `i` is inside the plane; prefetching never faults.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(p.data.as_ptr().add(i) as *const i8) };
+            }
+            if let Some(m) = &f.saturated {
+                // SAFETY: as above.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(m.data.as_ptr().add(i) as *const i8) };
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (frames, i);
+}
+
+/// Interpolates the node coefficients to row `y`: the value at each node column and the
+/// slope toward the next one.
+#[inline(always)]
+fn prepare_row<T: Real>(grid: &TileGrid, y: usize, h: usize, w: usize, s: &mut RowScratch<T>) {
+    let (jy, ty) = grid.locate(y, h, grid.nodes_y);
+    let jy1 = (jy + 1).min(grid.nodes_y - 1);
+    let stride = grid.stride;
+    for jx in 0..grid.nodes_x {
+        let (a, c) = (grid.node(jx, jy), grid.node(jx, jy1));
+        for i in 0..stride {
+            s.row_left[jx * stride + i] = T::of(a[i] + (c[i] - a[i]) * ty);
+        }
+    }
+    for jx in 0..grid.nodes_x {
+        let jx1 = (jx + 1).min(grid.nodes_x - 1);
+        let span = grid.node_pos(jx1, w) as f64 - grid.node_pos(jx, w) as f64;
+        let inv = if span > 0.0 { 1.0 / span } else { 0.0 };
+        for i in 0..stride {
+            let d = s.row_left[jx1 * stride + i] - s.row_left[jx * stride + i];
+            s.row_slope[jx * stride + i] = d * T::of(inv);
+        }
+    }
+}
+
+/// Where a chunk's coefficients come from: a straight line along the row (the chunk lies in
+/// one tile: each value is `left + slope * offset`, computed where it is used), or a table.
+enum Source<'a, T> {
+    Linear {
+        left: &'a [T],
+        slope: &'a [T],
+        offset: [T; LANES],
+    },
+    Table(&'a [[T; LANES]]),
+}
+
+impl<T: Real> Source<'_, T> {
+    /// Coefficient `i` for every lane.
+    #[inline(always)]
+    fn get<const FMA: bool>(&self, i: usize) -> [T; LANES] {
+        match self {
+            Source::Linear {
+                left,
+                slope,
+                offset,
+            } => {
+                let (a, b) = (left[i], slope[i]);
+                offset.map(|o| madd::<T, FMA>(b, o, a))
+            }
+            Source::Table(t) => t[i],
+        }
+    }
+}
+
+/// Which lanes have coefficients, and for a chunk inside one tile the node column and the
+/// lanes' offsets from it (no table is filled); otherwise the table in `s.coef` is filled.
+#[inline(always)]
+#[allow(clippy::type_complexity)]
+fn fill_coefficients<T: Real>(
+    ctx: &Context,
+    x: usize,
+    y: usize,
+    s: &mut RowScratch<T>,
+) -> ([bool; LANES], Option<(usize, [T; LANES])>) {
+    let (w, h) = (ctx.frames.width, ctx.frames.height);
+    let stride = s.coef.len();
+    let mut valid = [false; LANES];
+    match ctx.coefficients {
+        Coefficients::Tiled(grid) => {
+            let (jy, _) = grid.locate(y, h, grid.nodes_y);
+            let (jx, _) = grid.locate(x, w, grid.nodes_x);
+            let (jx_end, _) = grid.locate(x + LANES - 1, w, grid.nodes_x);
+            if jx == jx_end {
+                let x_node = T::of(grid.node_pos(jx, w) as f64);
+                let mut offset = [T::zero(); LANES];
+                for (l, o) in offset.iter_mut().enumerate() {
+                    *o = T::of((x + l) as f64) - x_node;
+                }
+                return ([grid.tile_ok(jx, jy); LANES], Some((jx, offset)));
+            }
+            for (l, v) in valid.iter_mut().enumerate() {
+                let (jx, _) = grid.locate(x + l, w, grid.nodes_x);
+                let offset = T::of((x + l) as f64 - grid.node_pos(jx, w) as f64);
+                for i in 0..stride {
+                    let left = s.row_left[jx * stride + i];
+                    s.coef[i][l] = left + s.row_slope[jx * stride + i] * offset;
+                }
+                *v = grid.tile_ok(jx, jy);
+            }
+        }
+        Coefficients::PerPixel => {
+            for (l, v) in valid.iter_mut().enumerate() {
+                *v = exact_coefficients(ctx.illumination, (x + l) as f64, y as f64, &mut s.pixel);
+                for i in 0..stride {
+                    s.coef[i][l] = T::of(s.pixel[i]);
+                }
+            }
+        }
+    }
+    (valid, None)
+}
+
+/// Solves `LANES` pixels starting at pixel index `i0` (column `x` of `row`); returns which
+/// lanes succeeded. Every lane is written; the caller overwrites the lanes that failed.
+#[inline(always)]
+fn solve_chunk<T: Real, const FMA: bool>(
+    ctx: &Context,
+    i0: usize,
+    coef: &Source<T>,
+    valid: [bool; LANES],
+    row: &mut RowOut,
+    x: usize,
+) -> [bool; LANES] {
+    let wt = LUMINANCE_WEIGHTS.map(T::of);
+    let threshold = T::of(ctx.dark_threshold);
+    let max = T::of(f32::MAX as f64);
+    let zero = T::zero();
+    let k_count = ctx.frames.lights.len();
+    // Normal matrix (xx, xy, xz, yy, yz, zz) of all lights; dropped lights are subtracted.
+    let mut a: [[T; LANES]; 6] = std::array::from_fn(|i| coef.get::<FMA>(4 * k_count + i));
+    // Right-hand sides: R, G, B, or the luminance alone in slot 0 for a normal-only solve;
+    // and the sum of squared luminance measurements, for the residual.
+    let mut b = [[[zero; LANES]; 3]; 3];
+    let mut lum_sq = [zero; LANES];
+    let mut dropped = [zero; LANES];
+    for (k, frame) in ctx.frames.lights.iter().enumerate() {
+        let load = |p: &crate::plane::Plane| -> [T; LANES] {
+            let src: &[f32; LANES] = p.data[i0..i0 + LANES].try_into().expect("a whole chunk");
+            src.map(T::of32)
+        };
+        let (r, g, bl) = (load(&frame.rgb.r), load(&frame.rgb.g), load(&frame.rgb.b));
+        const NONE_SATURATED: [bool; LANES] = [false; LANES];
+        let sat: &[bool; LANES] = match &frame.saturated {
+            Some(m) => m.data[i0..i0 + LANES].try_into().expect("a whole chunk"),
+            None => &NONE_SATURATED,
+        };
+        let s = ctx.scale[k].map(T::of);
+        let (lx, ly, lz) = (
+            coef.get::<FMA>(3 * k),
+            coef.get::<FMA>(3 * k + 1),
+            coef.get::<FMA>(3 * k + 2),
+        );
+        let inv_falloff = coef.get::<FMA>(3 * k_count + k);
+        let mut keep = [false; LANES];
+        let mut v = [[zero; LANES]; 3];
+        let mut lum_k = [zero; LANES];
+        for l in 0..LANES {
+            let lum = madd::<T, FMA>(wt[0], r[l], madd::<T, FMA>(wt[1], g[l], wt[2] * bl[l]));
+            keep[l] = !sat[l] && lum > threshold && lum <= max;
+            let m = if keep[l] { inv_falloff[l] } else { zero };
+            let rgb = [r[l], g[l], bl[l]].map(|v| if keep[l] { v } else { zero });
+            for c in 0..3 {
+                v[c][l] = rgb[c] * (s[c] * m);
+            }
+            lum_k[l] = madd::<T, FMA>(
+                wt[0],
+                v[0][l],
+                madd::<T, FMA>(wt[1], v[1][l], wt[2] * v[2][l]),
+            );
+            lum_sq[l] = madd::<T, FMA>(lum_k[l], lum_k[l], lum_sq[l]);
+        }
+        {
+            for l in 0..LANES {
+                let one = if keep[l] { zero } else { T::one() };
+                dropped[l] += one;
+                let (mx, my, mz) = (one * lx[l], one * ly[l], one * lz[l]);
+                a[0][l] = madd::<T, FMA>(-mx, lx[l], a[0][l]);
+                a[1][l] = madd::<T, FMA>(-mx, ly[l], a[1][l]);
+                a[2][l] = madd::<T, FMA>(-mx, lz[l], a[2][l]);
+                a[3][l] = madd::<T, FMA>(-my, ly[l], a[3][l]);
+                a[4][l] = madd::<T, FMA>(-my, lz[l], a[4][l]);
+                a[5][l] = madd::<T, FMA>(-mz, lz[l], a[5][l]);
+            }
+        }
+        if ctx.normal_only {
+            for l in 0..LANES {
+                b[0][0][l] = madd::<T, FMA>(lx[l], lum_k[l], b[0][0][l]);
+                b[0][1][l] = madd::<T, FMA>(ly[l], lum_k[l], b[0][1][l]);
+                b[0][2][l] = madd::<T, FMA>(lz[l], lum_k[l], b[0][2][l]);
+            }
+        } else {
+            for c in 0..3 {
+                for l in 0..LANES {
+                    b[c][0][l] = madd::<T, FMA>(lx[l], v[c][l], b[c][0][l]);
+                    b[c][1][l] = madd::<T, FMA>(ly[l], v[c][l], b[c][1][l]);
+                    b[c][2][l] = madd::<T, FMA>(lz[l], v[c][l], b[c][2][l]);
+                }
+            }
+        }
+    }
+    let used = V::splat(T::of(k_count as f64)) - V(dropped);
+    let a = a.map(V);
+    let [xx, xy, xz, yy, yz, zz] = a;
+    // Adjugate of the symmetric normal matrix; its inverse is adjugate / determinant.
+    let adj = [
+        yy * zz - yz * yz,
+        xz * yz - xy * zz,
+        xy * yz - xz * yy,
+        xx * zz - xz * xz,
+        xy * xz - xx * yz,
+        xx * yy - xy * xy,
+    ];
+    let det = xx * adj[0] + xy * adj[1] + xz * adj[2];
+    let inv_det = V::splat(T::one()) / det;
+    let inv = adj.map(|v| v * inv_det);
+    let frob_sq = |m: &[V<T>; 6]| {
+        m[0] * m[0]
+            + m[3] * m[3]
+            + m[5] * m[5]
+            + (m[1] * m[1] + m[2] * m[2] + m[4] * m[4]) * T::of(2.0)
+    };
+    // Frobenius condition number of A, square-rooted to speak of L (as the exact kernel).
+    let condition = (frob_sq(&a) * frob_sq(&inv)).sqrt().sqrt();
+    let apply = |v: &[V<T>; 3]| -> [V<T>; 3] {
+        [
+            inv[0] * v[0] + inv[1] * v[1] + inv[2] * v[2],
+            inv[1] * v[0] + inv[3] * v[1] + inv[4] * v[2],
+            inv[2] * v[0] + inv[4] * v[1] + inv[5] * v[2],
+        ]
+    };
+    let b = b.map(|bc| bc.map(V));
+    let (n_lum, b_lum, n_rgb) = if ctx.normal_only {
+        (apply(&b[0]), b[0], None)
+    } else {
+        let n_rgb = [apply(&b[0]), apply(&b[1]), apply(&b[2])];
+        let mix =
+            |v: &[[V<T>; 3]; 3], d: usize| v[0][d] * wt[0] + v[1][d] * wt[1] + v[2][d] * wt[2];
+        (
+            [mix(&n_rgb, 0), mix(&n_rgb, 1), mix(&n_rgb, 2)],
+            [mix(&b, 0), mix(&b, 1), mix(&b, 2)],
+            Some(n_rgb),
+        )
+    };
+    // Residual of the luminance fit: for the least-squares solution `|r|^2 = |I|^2 - N . b`
+    // (in f32 this loses digits when the residual is tiny against the signal; clamped at 0).
+    let nb = n_lum[0] * b_lum[0] + n_lum[1] * b_lum[1] + n_lum[2] * b_lum[2];
+    let residual = ((V(lum_sq) - nb).max(zero) / used).sqrt();
+    let length = (n_lum[0] * n_lum[0] + n_lum[1] * n_lum[1] + n_lum[2] * n_lum[2]).sqrt();
+    let inv_length = V::splat(T::one()) / length;
+    let unit = n_lum.map(|v| v * inv_length);
+    let albedo = match &n_rgb {
+        None => [length; 3],
+        Some(n) => {
+            std::array::from_fn(|c| n[c][0] * unit[0] + n[c][1] * unit[1] + n[c][2] * unit[2])
+        }
+    };
+    let mut ok = valid;
+    let (min_len, cond_max) = (T::of(1e-12), T::of(ctx.max_condition));
+    for l in 0..LANES {
+        ok[l] &= used.0[l] >= T::of(3.0)
+            && det.0[l] > zero
+            && condition.0[l] <= cond_max
+            && length.0[l] > min_len
+            && length.0[l] <= max
+            && (albedo[0].0[l] + albedo[1].0[l] + albedo[2].0[l] + residual.0[l]).is_finite();
+    }
+    let (unit, albedo, residual, condition) = (
+        unit.map(|v| v.0),
+        albedo.map(|v| v.0),
+        residual.0,
+        condition.0,
+    );
+    let store = |out: &mut [f32], v: &[T; LANES]| {
+        for (o, v) in out[x..x + LANES].iter_mut().zip(v) {
+            *o = v.to32();
+        }
+    };
+    for d in 0..3 {
+        store(row.normal[d], &unit[d]);
+        store(row.albedo[d], &albedo[d]);
+    }
+    store(row.residual, &residual);
+    store(row.condition, &condition);
+    row.predicted[x..x + LANES].fill(0.0);
+    for (o, u) in row.lights[x..x + LANES].iter_mut().zip(&used.0) {
+        *o = u.to32() as u8;
+    }
+    row.status[x..x + LANES].fill(PixelStatus::Solved);
+    ok
+}
+
+/// Resets pixel `x` of `row` to the unsolved defaults with `status`.
+fn reset_pixel(row: &mut RowOut, x: usize, status: PixelStatus) {
+    for d in 0..3 {
+        row.normal[d][x] = if d == 2 { 1.0 } else { 0.0 };
+        row.albedo[d][x] = 0.0;
+    }
+    row.residual[x] = 0.0;
+    row.predicted[x] = 0.0;
+    row.condition[x] = 0.0;
+    row.lights[x] = 0;
+    row.status[x] = status;
+}
+
+/// Solves one pixel with the exact kernel (dropping unusable lights).
+fn exact_pixel<T>(ctx: &Context, y: usize, x: usize, row: &mut RowOut, s: &mut RowScratch<T>) {
+    let w = ctx.frames.width;
+    if ctx.mask.is_some_and(|m| !m.data[y * w + x]) {
+        reset_pixel(row, x, PixelStatus::OutsideMask);
+        return;
+    }
+    reset_pixel(row, x, PixelStatus::OutsideMask);
+    match ctx.illumination.point(x, y) {
+        Some(point) => ctx
+            .exact
+            .solve_pixel(y * w + x, &point, &mut s.exact, row, x),
+        None => row.status[x] = PixelStatus::Degenerate,
+    }
+}

@@ -1,0 +1,202 @@
+//! The streaming kernel against the exact per-pixel kernel on the same frames. Tolerances:
+//! f64 with exact coefficients must agree to the f32 output rounding; f32 to a small multiple
+//! of single-precision round-off times the light matrix's condition number; tiles to the
+//! tolerance they were planned for.
+
+use super::*;
+use crate::bench::{bench_noise, deviation_deg, render_scene, SceneKind};
+use crate::plane::Mask;
+use crate::progress::Silent;
+use crate::rig::Rig;
+
+/// About 0.05 MP over the whole sensor field: every pixel's light geometry differs.
+const MP: f64 = 0.05;
+
+fn run(rig: &Rig, frames: &Frames, options: &SolveOptions, mask: Option<&Mask>) -> SolveResult {
+    let input = SolveInput {
+        frames,
+        lights: LightSource::Rig(rig),
+        noise: bench_noise(rig),
+        exposure: 1.0,
+        mask,
+    };
+    solve(&input, options, &Silent).unwrap()
+}
+
+/// Plain least squares, exact kernel: what the streaming kernel must reproduce.
+fn exact_ls() -> SolveOptions {
+    SolveOptions {
+        estimator: Estimator::LeastSquares,
+        ..SolveOptions::default()
+    }
+}
+
+fn streaming(precision: Precision, tiles: Option<f64>) -> SolveOptions {
+    SolveOptions {
+        precision,
+        tile_tolerance_deg: tiles,
+        ..exact_ls()
+    }
+}
+
+/// Frames with bad values planted: NaN, infinity and saturation in a few pixels.
+fn damaged(mut frames: Frames) -> Frames {
+    let n = frames.width * frames.height;
+    frames.lights[0].rgb.g.data[n / 3] = f32::NAN;
+    frames.lights[1].rgb.r.data[n / 2] = f32::INFINITY;
+    for k in 0..8 {
+        frames.lights[k].rgb.b.data[n / 4 + 7] = f32::NAN;
+    }
+    if let Some(m) = frames.lights[2].saturated.as_mut() {
+        m.data[n / 5] = true;
+    }
+    frames
+}
+
+#[test]
+fn f64_streaming_kernel_reproduces_the_exact_kernel() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::Shadows, MP, &Silent).unwrap();
+    let frames = damaged(frames);
+    let exact = run(&rig, &frames, &exact_ls(), None);
+    let fast = run(&rig, &frames, &streaming(Precision::F64, None), None);
+    assert_eq!(fast.status, exact.status);
+    assert_eq!(fast.lights_used, exact.lights_used);
+    assert!(exact.count(PixelStatus::NonFinite) >= 1);
+    assert!(exact.count(PixelStatus::Solved) > frames.width * frames.height * 9 / 10);
+    // Both compute in f64 and store f32: normals agree to f32 rounding (~1e-5 degrees).
+    let (max, _) = deviation_deg(&fast, &exact);
+    assert!(max < 1e-4, "max deviation {max} deg");
+    for i in 0..exact.status.len() {
+        for c in 0..3 {
+            let (a, b) = (fast.albedo[c].data[i], exact.albedo[c].data[i]);
+            assert!((a - b).abs() <= 1e-5 * b.abs() + 1e-7, "albedo {a} vs {b}");
+        }
+        let (r, q) = (fast.residual.data[i], exact.residual.data[i]);
+        assert!(
+            (r - q).abs() <= 1e-4 * q + 1e-6,
+            "residual {r} vs {q} at {i}"
+        );
+        let (c, d) = (fast.condition.data[i], exact.condition.data[i]);
+        assert!((c - d).abs() <= 1e-4 * d, "condition {c} vs {d}");
+    }
+}
+
+#[test]
+fn f32_kernel_stays_within_single_precision_round_off() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::Sheen, MP, &Silent).unwrap();
+    let exact = run(&rig, &frames, &exact_ls(), None);
+    let fast = run(&rig, &frames, &streaming(Precision::F32, None), None);
+    assert_eq!(fast.status, exact.status);
+    // Forward error of a least-squares solve: ~ condition(A) * K * eps per component.
+    let condition = exact.condition.data.iter().fold(0f32, |a, &b| a.max(b)) as f64;
+    let bound = (condition * condition * 10.0 * 4.0 * f32::EPSILON as f64).to_degrees();
+    let (max, mean) = deviation_deg(&fast, &exact);
+    assert!(max < bound, "f32 max deviation {max} deg, bound {bound}");
+    assert!(mean < bound / 10.0, "f32 mean deviation {mean} deg");
+}
+
+#[test]
+fn tiled_coefficients_cost_less_than_their_tolerance() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::Lambertian, MP, &Silent).unwrap();
+    let exact = run(&rig, &frames, &exact_ls(), None);
+    for tolerance in [0.01, 0.05] {
+        let tiled = run(
+            &rig,
+            &frames,
+            &streaming(Precision::F64, Some(tolerance)),
+            None,
+        );
+        assert_eq!(tiled.status, exact.status);
+        let (max, _) = deviation_deg(&tiled, &exact);
+        assert!(
+            max <= tolerance,
+            "tolerance {tolerance}: max deviation {max} deg"
+        );
+    }
+}
+
+#[test]
+fn normal_only_solves_the_luminance_alone() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::Lambertian, MP, &Silent).unwrap();
+    let full = run(&rig, &frames, &streaming(Precision::F64, Some(0.01)), None);
+    let options = SolveOptions {
+        normal_only: true,
+        ..streaming(Precision::F64, Some(0.01))
+    };
+    let lum = run(&rig, &frames, &options, None);
+    let (max, _) = deviation_deg(&lum, &full);
+    assert!(max < 1e-4, "max deviation {max} deg");
+    for i in 0..full.status.len() {
+        // The luminance albedo is the luminance of the colour albedo.
+        let mixed: f64 = (0..3)
+            .map(|c| LUMINANCE_WEIGHTS[c] * full.albedo[c].data[i] as f64)
+            .sum();
+        let a = lum.albedo[0].data[i] as f64;
+        assert!((a - mixed).abs() <= 1e-5 * mixed + 1e-7, "{a} vs {mixed}");
+        assert_eq!(lum.albedo[0].data[i], lum.albedo[2].data[i]);
+    }
+    let exact_options = SolveOptions {
+        normal_only: true,
+        ..exact_ls()
+    };
+    let exact = run(&rig, &frames, &exact_options, None);
+    let (max, _) = deviation_deg(&exact, &full);
+    assert!(max < 0.01, "exact normal-only vs tiled: {max} deg");
+}
+
+#[test]
+fn pixels_outside_the_mask_are_not_touched() {
+    let rig = Rig::default_rig();
+    let (_, mut frames) = render_scene(&rig, SceneKind::Lambertian, MP, &Silent).unwrap();
+    let (w, h) = (frames.width, frames.height);
+    let mut mask = Mask::new(w, h, false);
+    for y in h / 4..h / 2 {
+        for x in w / 3..w / 3 + 40 {
+            mask.data[y * w + x] = true;
+        }
+    }
+    // Poison everything outside: any work there would report NonFinite, not OutsideMask.
+    for f in &mut frames.lights {
+        for i in 0..w * h {
+            if !mask.data[i] {
+                f.rgb.r.data[i] = f32::NAN;
+            }
+        }
+    }
+    for options in [
+        streaming(Precision::F32, Some(0.01)),
+        SolveOptions::default(),
+    ] {
+        let masked = run(&rig, &frames, &options, Some(&mask));
+        assert_eq!(masked.count(PixelStatus::Solved), mask.count());
+        assert_eq!(masked.count(PixelStatus::OutsideMask), w * h - mask.count());
+        for i in 0..w * h {
+            if !mask.data[i] {
+                assert_eq!(masked.normal_at(i), nalgebra::Vector3::z());
+            }
+        }
+    }
+}
+
+#[test]
+fn streaming_options_need_the_least_squares_estimator() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::Lambertian, 0.01, &Silent).unwrap();
+    let input = SolveInput {
+        frames: &frames,
+        lights: LightSource::Rig(&rig),
+        noise: bench_noise(&rig),
+        exposure: 1.0,
+        mask: None,
+    };
+    let options = SolveOptions {
+        estimator: Estimator::Adaptive,
+        ..streaming(Precision::F32, None)
+    };
+    let err = solve(&input, &options, &Silent).unwrap_err().to_string();
+    assert!(err.contains("--estimator ls"), "{err}");
+}
