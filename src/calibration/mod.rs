@@ -3,9 +3,12 @@
 //! and linearity, the white sheet's per-pixel light intensity, and each LED's position fitted
 //! to the white sheet; everything written as a bundle that captures and solves cite.
 
+pub mod bundle;
 pub mod camera;
+pub mod capture;
 pub mod cv;
 pub mod graychart;
 pub mod lights;
 pub mod table;
 pub mod whitesheet;
+pub mod wizard;

@@ -3,6 +3,7 @@
 //!
 //! Exit codes: 0 success, 1 failure (the message says what and where), 2 usage error.
 
+mod calibrate;
 mod capture;
 mod progress;
 
@@ -52,6 +53,9 @@ enum Command {
     Capture(capture::CaptureArgs),
     /// Bench work on the LED controller: list ports, identify, test, switch LEDs.
     Lights(capture::LightsArgs),
+    /// Calibrate the rig: without a subcommand, the wizard (camera, table, white sheet, flatness
+    /// check; resumable); `calibrate camera` runs one step over photographs.
+    Calibrate(calibrate::CalibrateArgs),
     /// Benchmark every solver variant on standard synthetic scenes: run time against error,
     /// beside the memory-read floor and a NumPy peer.
     Bench(BenchArgs),
@@ -331,6 +335,7 @@ pub fn run() -> i32 {
         Command::Solve(args) => solve(args, cli.json, &bars),
         Command::Capture(args) => capture::capture(args, cli.json, &bars),
         Command::Lights(args) => capture::lights(args, cli.json),
+        Command::Calibrate(args) => calibrate::calibrate(args, cli.json, &bars),
         Command::Bench(args) => bench(args, cli.json, &bars),
     };
     match outcome {

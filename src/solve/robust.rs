@@ -7,7 +7,7 @@
 //! matrix, `h_k = l_k^T (L^T L)^-1 l_k` is light `k`'s leverage, and `r_k / (s_k sqrt(1 - h_k))`
 //! is its residual in units of its own standard deviation under the noise model. The light
 //! furthest out is dropped and the rest refitted, until no light is an outlier at
-//! `outlier_sigma` or only `max(3, (1 - max_rejected_fraction) m)` lights are left. Lights
+//! `outlier_sigma` or only `max(4, (1 - max_rejected_fraction) m)` lights are left. Lights
 //! that agree are all kept, so on clean data the robust fit is least squares.
 //!
 //! Why this scheme (measured, see README "Estimators"): thresholding the darkest and brightest
@@ -33,7 +33,8 @@ pub struct RobustOptions {
     pub significance_sigma: f64,
     /// A light whose studentised residual exceeds this many standard deviations is an outlier.
     pub outlier_sigma: f64,
-    /// At most this fraction of a pixel's usable lights may be rejected (3 are always kept).
+    /// At most this fraction of a pixel's usable lights may be rejected (4 are always kept,
+    /// so that the result can still be tested).
     pub max_rejected_fraction: f64,
     /// Model error of real surfaces, as a fraction of the signal, added in quadrature to the
     /// sensor noise in both tests (0: the noise model alone decides).
@@ -273,15 +274,21 @@ fn reject_outliers(
     spare.extend_from_slice(measurements);
     let any = reject(context, measurements, start.clone(), Rule::Any);
     let darker = reject(context, spare, start, Rule::DarkerOnly);
+    // A pass whose lights pass the test beats one whose do not; between two that pass, more
+    // lights, then (shadows only darken) the higher albedo; between two that fail, the smaller
+    // statistic per degree of freedom.
     let rank = |f: &WeightedFit, lights: usize| {
-        (
-            chi.accepts_statistic(f.chi2, lights),
-            lights,
-            f.n_lum.norm(),
-        )
+        let passes = chi.accepts_statistic(f.chi2, lights);
+        let score = if passes {
+            lights as f64
+        } else {
+            -f.chi2 / lights.saturating_sub(3).max(1) as f64
+        };
+        (passes, score, f.n_lum.norm())
     };
     let (a, b) = (rank(&any, measurements.len()), rank(&darker, spare.len()));
-    let weighted = if (b.0, b.1) > (a.0, a.1) || ((b.0, b.1) == (a.0, a.1) && b.2 > a.2) {
+    let darker_wins = (b.0, b.1) > (a.0, a.1) || ((b.0, b.1) == (a.0, a.1) && b.2 > a.2);
+    let weighted = if darker_wins {
         std::mem::swap(measurements, spare);
         darker
     } else {
@@ -310,7 +317,10 @@ fn reject(
     let chi = context.kernel.chi_square();
     let usable = measurements.len();
     let keep = ((1.0 - options.robust.max_rejected_fraction) * usable as f64).ceil() as usize;
-    let keep = keep.max(3);
+    // Four lights at least: three fit any normal exactly, so a rejection that left three
+    // could not be checked, and with four every single removal fits exactly and which light
+    // was the outlier is undecidable.
+    let keep = keep.max(4);
     let mut fit = fit;
     while measurements.len() > keep && !chi.accepts_statistic(fit.chi2, measurements.len()) {
         let sigma = options.robust.outlier_sigma;

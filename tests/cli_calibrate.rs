@@ -1,0 +1,233 @@
+//! `psscan calibrate` from the outside: the camera step over photographs (`--json`), the clear
+//! error of a build without OpenCV, and the interactive wizard driven for real in tmux with
+//! send-keys, stopped half-way and resumed.
+
+#[cfg(feature = "opencv")]
+use std::path::Path;
+use std::process::{Command, Output};
+#[cfg(feature = "opencv")]
+use std::time::{Duration, Instant};
+
+fn psscan(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_psscan"))
+        .args(args)
+        .output()
+        .expect("psscan runs")
+}
+
+#[cfg(not(feature = "opencv"))]
+#[test]
+fn calibrate_camera_without_opencv_says_so() {
+    let tmp = tempfile::tempdir().unwrap();
+    psscan::plane::GrayImage {
+        width: 8,
+        height: 8,
+        data: vec![0; 64],
+    }
+    .save_png(&tmp.path().join("a.png"))
+    .unwrap();
+    let out = psscan(&[
+        "calibrate",
+        "camera",
+        "--images",
+        tmp.path().to_str().unwrap(),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("built without OpenCV") && err.contains("--features opencv"),
+        "{err}"
+    );
+}
+
+#[test]
+fn calibrate_camera_names_a_missing_folder() {
+    let out = psscan(&[
+        "calibrate",
+        "camera",
+        "--images",
+        "/nonexistent/psscan-views",
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/psscan-views"));
+}
+
+#[cfg(feature = "opencv")]
+#[test]
+fn opencv_calibrate_camera_cli_json_on_real_photographs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = Path::new("/usr/share/doc/opencv-doc/examples/data");
+    for i in [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14] {
+        let name = format!("left{i:02}.jpg");
+        std::fs::copy(data.join(&name), tmp.path().join(&name))
+            .expect("opencv-doc's sample photographs");
+    }
+    let out = psscan(&[
+        "calibrate",
+        "camera",
+        "--images",
+        tmp.path().to_str().unwrap(),
+        "--board",
+        "9x6",
+        "--square-mm",
+        "25",
+        "--fix-aspect-ratio",
+        "--json",
+        "-q",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let k = v["camera_matrix"].as_array().unwrap();
+    assert_eq!(k.len(), 3);
+    assert_eq!(k[0][0], k[1][1], "fixed aspect ratio");
+    assert_eq!(v["distortion"].as_array().unwrap().len(), 5);
+    assert!(v["rms_reprojection_px"].as_f64().unwrap() < 0.5);
+    assert_eq!(
+        v["views_used"].as_u64().unwrap() + v["views_rejected"].as_u64().unwrap(),
+        13
+    );
+}
+
+#[cfg(feature = "opencv")]
+struct Tmux {
+    /// A private tmux server (`-L`), so the test touches no one else's sessions.
+    socket: String,
+    session: String,
+}
+
+#[cfg(feature = "opencv")]
+impl Tmux {
+    fn start(socket: &str, session: &str, command: &str) -> Tmux {
+        let status = Command::new("tmux")
+            .args([
+                "-L",
+                socket,
+                "new-session",
+                "-d",
+                "-s",
+                session,
+                "-x",
+                "200",
+                "-y",
+                "50",
+                command,
+            ])
+            .status()
+            .expect("tmux is installed (.ci/install-deps)");
+        assert!(status.success());
+        Tmux {
+            socket: socket.into(),
+            session: session.into(),
+        }
+    }
+
+    fn screen(&self) -> String {
+        let out = Command::new("tmux")
+            .args([
+                "-L",
+                &self.socket,
+                "capture-pane",
+                "-p",
+                "-J",
+                "-S",
+                "-10000",
+                "-t",
+                &self.session,
+            ])
+            .output()
+            .unwrap();
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    }
+
+    fn keys(&self, keys: &[&str]) {
+        let mut args = vec!["-L", &self.socket, "send-keys", "-t", &self.session];
+        args.extend_from_slice(keys);
+        assert!(Command::new("tmux").args(&args).status().unwrap().success());
+    }
+
+    /// Answers prompts one at a time until `until` appears on the screen; `limit` prompts at
+    /// most (then returns with the prompt waiting).
+    fn answer_until(&self, until: &str, limit: usize, timeout: Duration) -> String {
+        let start = Instant::now();
+        let mut answered = 0;
+        loop {
+            let screen = self.screen();
+            if screen.contains(until) || start.elapsed() > timeout {
+                return screen;
+            }
+            let prompts = screen.matches("[Enter] take it").count();
+            if prompts > answered && answered < limit && screen.trim_end().ends_with('>') {
+                self.keys(&["Enter"]);
+                answered += 1;
+            } else if answered >= limit && prompts > answered {
+                return screen;
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+}
+
+#[cfg(feature = "opencv")]
+impl Drop for Tmux {
+    fn drop(&mut self) {
+        let _ = Command::new("tmux")
+            .args(["-L", &self.socket, "kill-session", "-t", &self.session])
+            .status();
+    }
+}
+
+#[cfg(feature = "opencv")]
+#[test]
+fn opencv_wizard_in_tmux_stops_and_resumes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("bundle");
+    let command = format!(
+        "{} calibrate --out {} -q; echo WIZARD-EXIT-$?; sleep 60",
+        env!("CARGO_BIN_EXE_psscan"),
+        dir.display()
+    );
+    let socket = format!("psscan-wizard-{}", std::process::id());
+    let first = Tmux::start(&socket, "first", &command);
+    // Five photographs (the simulated operator's fifth has the board half out of the frame),
+    // then q at the sixth prompt.
+    let screen = first.answer_until("never", 5, Duration::from_secs(120));
+    first.keys(&["q", "Enter"]);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let mut screen_after = screen.clone();
+    while !screen_after.contains("WIZARD-EXIT-") && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(200));
+        screen_after = first.screen();
+    }
+    println!("--- first session ---\n{screen_after}");
+    assert!(screen_after.contains("view-000 accepted"));
+    assert!(screen_after.contains("view-004 REJECTED: the whole board was not found"));
+    assert!(screen_after.contains("the board has not been at:"));
+    assert!(
+        screen_after.contains("stopped; the state is saved")
+            && screen_after.contains("WIZARD-EXIT-0")
+    );
+    let state = std::fs::read_to_string(dir.join("wizard-state.toml")).unwrap();
+    assert!(
+        state.contains("attempts = 5") && state.contains("step = \"camera-views\""),
+        "{state}"
+    );
+
+    // The same command resumes at the sixth photograph and goes to the end.
+    let second = Tmux::start(&socket, "second", &command);
+    let screen = second.answer_until("WIZARD-EXIT-", 100, Duration::from_secs(400));
+    println!("--- second session ---\n{screen}");
+    assert!(screen.contains("resuming") && screen.contains("4 of 12 chessboard views accepted"));
+    assert!(screen.contains("view-005") && !screen.contains("view-000 "));
+    assert!(screen.contains("LED fit iteration 1") && screen.contains("FLAT"));
+    assert!(screen.contains("WIZARD-EXIT-0"));
+    let bundle = psscan::calibration::bundle::read(&dir).unwrap();
+    let flat = bundle.calibration.flatness.unwrap();
+    assert!(flat.flat && flat.max_deg <= 0.5);
+    assert!(bundle.index.id.starts_with("default/wizard/"));
+    drop(second);
+    drop(first);
+}
