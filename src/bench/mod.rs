@@ -30,7 +30,8 @@ use crate::synth::{expose, Noise, Scene, SceneOptions, Sheen, Textile};
 pub use floor::{input_bytes, read_all};
 pub use numpy::available as numpy_available;
 
-/// Above this size (megapixels) only the Lambertian scene is run.
+/// Above this size (megapixels) only the Lambertian scene is run, without the slow per-pixel
+/// variants (SVD, robust, adaptive, exact coefficients per pixel, predicted error).
 pub const LARGE_MP: f64 = 4.0;
 
 /// Tile tolerance of the benchmark's tiled variants (degrees).
@@ -93,6 +94,8 @@ impl SceneKind {
 pub struct Variant {
     pub name: String,
     pub options: SolveOptions,
+    /// Also run above [`LARGE_MP`] (the slow per-pixel variants are reported at 1 MP only).
+    pub large: bool,
 }
 
 /// The variants every scene is solved with.
@@ -104,12 +107,17 @@ pub fn variants() -> Vec<Variant> {
     };
     let v = |name: &str, options: SolveOptions| Variant {
         name: name.into(),
+        large: options.method != Method::Svd
+            && options.estimator == Estimator::LeastSquares
+            && (options.tile_tolerance_deg.is_some() || !options.streaming())
+            && !options.predict_error,
         options,
     };
     let streaming = |precision, tiles: Option<f64>, normal_only| SolveOptions {
         precision,
         tile_tolerance_deg: tiles,
         normal_only,
+        streaming_kernel: true,
         ..base.clone()
     };
     let tiles = Some(TILE_TOLERANCE_DEG);
@@ -356,6 +364,9 @@ pub fn run(options: &BenchOptions, progress: &dyn Progress) -> Result<BenchResul
             let mut scene_rows = vec![floor_row];
             let mut exact: Option<SolveResult> = None;
             for variant in &variants {
+                if mp > LARGE_MP && !variant.large {
+                    continue;
+                }
                 let slow =
                     !variant.options.streaming() || variant.options.tile_tolerance_deg.is_none();
                 let runs = if slow && mp > LARGE_MP {

@@ -151,12 +151,17 @@ pub struct SolveOptions {
     /// Solve the luminance alone (one solve instead of three): the normal, and the luminance
     /// albedo in every albedo channel.
     pub normal_only: bool,
+    /// Use the streaming kernel even in f64 with per-pixel coefficients (F32 or a tile
+    /// tolerance select it anyway).
+    pub streaming_kernel: bool,
 }
 
 impl SolveOptions {
     /// Whether the streaming kernel (least squares only) solves the pixels.
     pub fn streaming(&self) -> bool {
-        self.precision == Precision::F32 || self.tile_tolerance_deg.is_some()
+        self.streaming_kernel
+            || self.precision == Precision::F32
+            || self.tile_tolerance_deg.is_some()
     }
 }
 
@@ -173,6 +178,7 @@ impl Default for SolveOptions {
             precision: Precision::F64,
             tile_tolerance_deg: None,
             normal_only: false,
+            streaming_kernel: false,
         }
     }
 }

@@ -35,6 +35,7 @@ fn streaming(precision: Precision, tiles: Option<f64>) -> SolveOptions {
     SolveOptions {
         precision,
         tile_tolerance_deg: tiles,
+        streaming_kernel: true,
         ..exact_ls()
     }
 }
