@@ -136,7 +136,7 @@ pub fn expected_angle_error(n_scaled: &Vector3<f64>, cov_n: &Matrix3<f64>) -> f6
 }
 
 /// Two unit vectors completing `n` to an orthonormal basis.
-fn tangent_basis(n: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+pub(crate) fn tangent_basis(n: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
     let helper = if n.x.abs() < 0.9 {
         Vector3::x()
     } else {

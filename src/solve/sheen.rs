@@ -17,6 +17,7 @@ use nalgebra::{Matrix2, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::kernel::{Fit, Measurement};
+use super::predict::tangent_basis;
 use super::robust::Context;
 use super::{PixelFit, LUMINANCE_WEIGHTS};
 use crate::error::{Error, Result};
@@ -320,15 +321,4 @@ fn outputs(model: &SheenModel, problem: &Problem, n: &Vector3<f64>, lambert: &Fi
         residual: Some((sum_sq / m as f64).sqrt()),
         kind: PixelFit::Sheen,
     })
-}
-
-fn tangent_basis(n: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
-    let helper = if n.x.abs() < 0.9 {
-        Vector3::x()
-    } else {
-        Vector3::y()
-    };
-    let t1 = n.cross(&helper).normalize();
-    let t2 = n.cross(&t1);
-    (t1, t2)
 }
