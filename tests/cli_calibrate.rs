@@ -412,3 +412,50 @@ fn opencv_wizard_capture_in_tmux_ctrl_c_in_the_white_sheet_then_resume() {
     drop(second);
     drop(first);
 }
+
+#[test]
+fn the_wizard_asks_for_source_capture_before_driving_hardware() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = psscan(&[
+        "calibrate",
+        "--firmware-sim",
+        "--yes",
+        "--out",
+        tmp.path().join("b").to_str().unwrap(),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("add --source capture"), "{err}");
+}
+
+/// The capture source with a tethered camera, on this machine (no camera attached, or no
+/// libgphoto2 in the build): a clear error naming what to do, after the LEDs were reached.
+#[test]
+fn gphoto_wizard_capture_without_a_camera_says_so() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = psscan(&[
+        "calibrate",
+        "--source",
+        "capture",
+        "--firmware-sim",
+        "--camera",
+        "gphoto2",
+        "--yes",
+        "--out",
+        tmp.path().join("b").to_str().unwrap(),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    println!("{err}");
+    if cfg!(feature = "gphoto2") {
+        assert!(
+            err.contains("no camera found") || err.contains("cannot open a camera"),
+            "{err}"
+        );
+    } else {
+        assert!(
+            err.contains("built without libgphoto2") && err.contains("--features gphoto2"),
+            "{err}"
+        );
+    }
+}
