@@ -52,7 +52,7 @@ fn white_balance_and_linearity_from_the_cfa_values() {
 mod wizard_step {
     use psscan::calibration::camera::Board;
     use psscan::calibration::graychart::ChartDescription;
-    use psscan::calibration::wizard::{Step, TargetSource, Wizard, CHART_WORLD};
+    use psscan::calibration::wizard::{Step, TargetSource, Wizard};
     use psscan::error::{Error, Result};
     use psscan::plane::{Frames, GrayImage, SensorWindow};
     use psscan::progress::{Progress, Silent};
