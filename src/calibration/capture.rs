@@ -483,7 +483,11 @@ impl TargetSource for Captured {
         let mut sum: Option<Frames> = None;
         let n = exposures.max(1);
         for e in 0..n {
-            let take = (3 << 20) + (purpose.len() as u64) * 1000 + e as u64;
+            // Each exposure of each purpose its own noise (a re-shot frame its old noise).
+            let purpose_code = purpose
+                .bytes()
+                .fold(0u64, |h, b| h.wrapping_mul(31) + b as u64);
+            let take = (3 << 20) + (purpose_code << 8) + e as u64;
             self.place(
                 |s| Target::WhiteSheet {
                     reflectance: SIM_SHEET_REFLECTANCE,
