@@ -3,7 +3,7 @@
 //!
 //! Formats: the gray chart needs the raw CFA values, so camera RAW files (NEF, CR2, ARW, DNG,
 //! ... through rawler). The white sheet takes linear RGB: OpenEXR (linear floats, 1.0 = the
-//! white level), 16-bit RGB PNG or TIFF of raw digital numbers (psscan's `dn16` frames,
+//! white level; values within 1 % of it are taken as clipped), 16-bit RGB PNG or TIFF of raw digital numbers (psscan's `dn16` frames,
 //! linearised with the rig's sensor levels), or camera RAW files (demosaiced at full
 //! resolution, as a capture set's RAW frames are). Chessboard photographs (camera and table
 //! steps) are any 8-bit image the `image` crate reads (PNG, JPEG, TIFF).
@@ -12,8 +12,10 @@ use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 use crate::maps::write::read_exr;
-use crate::plane::{LightFrame, RgbPlanes, SensorWindow};
-use crate::raw::{read_dn_image, read_raw, subtract_dark, Levels, Mosaic, Resolution};
+use crate::plane::{LightFrame, Mask, RgbPlanes, SensorWindow};
+use crate::raw::{
+    read_dn_image, read_raw, subtract_dark, Levels, Mosaic, Resolution, SATURATION_MARGIN,
+};
 use crate::rig::Rig;
 
 /// Camera RAW extensions a folder listing picks up (explicitly named files may have any).
@@ -133,9 +135,16 @@ pub fn load_linear(path: &Path, levels: &Levels) -> Result<LightFrame> {
                 g: next(),
                 b: next(),
             };
+            // Linear files carry no saturation flags: a value within the RAW decoder's margin
+            // of the white level (1.0) is taken as clipped, as it would be in the RAW file.
+            let limit = 1.0 - SATURATION_MARGIN;
+            let mut saturated = Mask::new(rgb.width(), rgb.height(), false);
+            for (i, s) in saturated.data.iter_mut().enumerate() {
+                *s = rgb.channels().iter().any(|p| p.data[i] >= limit);
+            }
             Ok(LightFrame {
                 rgb,
-                saturated: None,
+                saturated: Some(saturated),
             })
         }
         "png" | "tif" | "tiff" => Ok(read_dn_image(path)?.to_light_frame(levels)),
@@ -202,7 +211,11 @@ pub fn check_size(
 /// Where `width x height` images sit on `rig`'s sensor: centred, one image pixel every `step`
 /// sensor pixels. Without `step`, the images must cover the whole sensor (full size, or
 /// binned by the same factor both ways).
-pub fn image_window(rig: &Rig, (width, height): (usize, usize), step: Option<f64>) -> Result<SensorWindow> {
+pub fn image_window(
+    rig: &Rig,
+    (width, height): (usize, usize),
+    step: Option<f64>,
+) -> Result<SensorWindow> {
     let (sw, sh) = (rig.camera.width as usize, rig.camera.height as usize);
     let step = match step {
         Some(s) if s.is_finite() && s > 0.0 => s,
@@ -210,7 +223,9 @@ pub fn image_window(rig: &Rig, (width, height): (usize, usize), step: Option<f64
         None => {
             let s = sw as f64 / width as f64;
             // A binned copy of the sensor keeps floor(size / step) pixels each way.
-            if (sh as f64 / s).floor() as usize != height && (sh as f64 / s).round() as usize != height {
+            if (sh as f64 / s).floor() as usize != height
+                && (sh as f64 / s).round() as usize != height
+            {
                 return Err(Error::Invalid(format!(
                     "the photographs are {width}x{height}, which is neither rig \"{}\"'s \
                      {sw}x{sh} sensor nor a binned copy of it: give --step (sensor pixels per \
@@ -248,10 +263,15 @@ mod tests {
     fn windows_follow_the_sensor_or_the_given_step() {
         let rig = Rig::default_rig();
         let (w, h) = (rig.camera.width as usize, rig.camera.height as usize);
-        assert_eq!(image_window(&rig, (w, h), None).unwrap(), SensorWindow::FULL);
+        assert_eq!(
+            image_window(&rig, (w, h), None).unwrap(),
+            SensorWindow::FULL
+        );
         let binned = image_window(&rig, (w / 8, h / 8), None).unwrap();
         assert_eq!(binned, SensorWindow::centred(w, h, w / 8, h / 8, 8.0));
-        let err = image_window(&rig, (1024, 512), None).unwrap_err().to_string();
+        let err = image_window(&rig, (1024, 512), None)
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("--step"), "{err}");
         let given = image_window(&rig, (1024, 512), Some(2.0)).unwrap();
         assert_eq!(given, SensorWindow::centred(w, h, 1024, 512, 2.0));
@@ -268,7 +288,10 @@ mod tests {
         let err = list_images(&[tmp.path().to_path_buf()], &["exr"], "white-sheet images")
             .unwrap_err()
             .to_string();
-        assert!(err.contains("no white-sheet images") && err.contains("exr"), "{err}");
+        assert!(
+            err.contains("no white-sheet images") && err.contains("exr"),
+            "{err}"
+        );
         for name in ["L01.exr", "L00.exr", "dark.exr", "notes.txt"] {
             std::fs::write(tmp.path().join(name), b"x").unwrap();
         }
@@ -280,6 +303,9 @@ mod tests {
         let err = check_light_count(&lights, &Rig::default_rig(), "white-sheet")
             .unwrap_err()
             .to_string();
-        assert!(err.contains("2 white-sheet photographs (L00.exr, L01.exr)") && err.contains("10 LEDs"), "{err}");
+        assert!(
+            err.contains("2 white-sheet photographs (L00.exr, L01.exr)") && err.contains("10 LEDs"),
+            "{err}"
+        );
     }
 }

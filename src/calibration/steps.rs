@@ -59,7 +59,11 @@ pub struct TableStep {
 
 /// The board lying flat on the table, photographed with the camera the camera step
 /// calibrated (same image size): the table's pose and its pixel-to-world check.
-pub fn table_from_file(path: &Path, board: &Board, camera: &CameraCalibration) -> Result<TableStep> {
+pub fn table_from_file(
+    path: &Path,
+    board: &Board,
+    camera: &CameraCalibration,
+) -> Result<TableStep> {
     let image = GrayImage::load(path)?;
     let intr = &camera.intrinsics;
     if (image.width, image.height) != (intr.width, intr.height) {

@@ -371,11 +371,10 @@ pub fn bundle(args: &BundleArgs, json: bool) -> anyhow::Result<()> {
         .as_ref()
         .map_or(&inputs.rig.name, |w| &w.1.rig.name)
         .clone();
-    let dir = args.out.clone().unwrap_or_else(|| {
-        PathBuf::from("calibration")
-            .join(&rig_name)
-            .join(&name)
-    });
+    let dir = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("calibration").join(&rig_name).join(&name));
     let (index, _) = steps::assemble_bundle(&inputs, &dir, &name, args.force)?;
     if json {
         print_json(&serde_json::json!({
@@ -386,7 +385,11 @@ pub fn bundle(args: &BundleArgs, json: bool) -> anyhow::Result<()> {
         }));
         return Ok(());
     }
-    println!("calibration bundle {} written to {}", index.id, dir.display());
+    println!(
+        "calibration bundle {} written to {}",
+        index.id,
+        dir.display()
+    );
     println!("  sha256 {}", index.sha256);
     for file in index.files.keys() {
         println!("  {file}");
