@@ -678,3 +678,226 @@ fn whitesheet_bundle_and_the_citation_in_captures_and_solves() {
     assert!(none.get("calibration").is_none());
     assert_eq!(none["calibration_cited_by_set"]["id"], id.as_str());
 }
+
+/// Every step over files, as a user runs them: chessboard photographs -> `calibrate camera`,
+/// the board on the table -> `calibrate table`, the white sheet -> `calibrate whitesheet` with
+/// that camera and table, then `calibrate bundle`; the synthetic textile captured with the
+/// bundle and solved. Checked against the as-built rig: pixel-to-world error under 1 mm,
+/// LEDs within 5 mm, the solve's mean angular error within 1.2x that of the true rig.
+#[cfg(feature = "opencv")]
+#[test]
+fn opencv_every_step_over_files_then_bundle_capture_and_solve() {
+    use psscan::calibration::camera::{Board, CameraCalibration};
+    use psscan::calibration::steps::{self, TableStep};
+    use psscan::calibration::table;
+    use psscan::synth::targets::Chessboard;
+
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    let hand = Rig::default_rig();
+    let truth = targets::as_built(&hand, 0.03, 5);
+    let (hand_file, truth_file) = (t.join("rig.toml"), t.join("truth.toml"));
+    hand.save(&hand_file).unwrap();
+    truth.save(&truth_file).unwrap();
+    let chess = Chessboard {
+        board: Board::parse("9x6", 15.0).unwrap(),
+        border_squares: 1.0,
+    };
+    // Chessboard views binned 4x (a preview stream), with one board half out of the frame
+    // and one bent: both must be rejected.
+    let views = t.join("views");
+    std::fs::create_dir_all(&views).unwrap();
+    let set = targets::chessboard_views(&truth, &chess, 4.0, 12, true, 21);
+    for (name, image) in &set.images {
+        image.save_png(&views.join(format!("{name}.png"))).unwrap();
+    }
+    let cam_file = t.join("camera.toml");
+    let board = ["--board", "9x6", "--square-mm", "15"];
+    let mut args = vec![
+        "calibrate",
+        "camera",
+        "--images",
+        s(&views),
+        "--out",
+        s(&cam_file),
+        "-q",
+    ];
+    args.extend(board);
+    println!("{}", ok(&psscan(&args)));
+    let cam: CameraCalibration = steps::load_toml(&cam_file, "camera").unwrap();
+    assert_eq!(cam.views_rejected, 2);
+
+    // The table.
+    let photo = t.join("table.png");
+    targets::table_view(&truth, &chess, 4.0, 77)
+        .save_png(&photo)
+        .unwrap();
+    let table_file = t.join("table.toml");
+    let mut args = vec![
+        "calibrate",
+        "table",
+        "--image",
+        s(&photo),
+        "--camera",
+        s(&cam_file),
+        "--out",
+        s(&table_file),
+    ];
+    args.extend(board);
+    let text = ok(&psscan(&args));
+    println!("{text}");
+    assert!(text.contains("pixel-to-world check over 54 corners"));
+    let table_step: TableStep = steps::load_toml(&table_file, "table").unwrap();
+    let calibrated = steps::compose_rig(&hand, Some(&cam), Some(&table_step.pose)).unwrap();
+    let (w, h) = (truth.camera.width as usize, truth.camera.height as usize);
+    let (worst, mean) = table::pixel_to_world_error(
+        &truth.camera,
+        &calibrated.camera,
+        0.0,
+        SensorWindow::FULL,
+        (w, h),
+        41,
+    );
+    println!(
+        "pixel-to-world error against the as-built camera over the whole field: max {:.3} mm, mean {:.3} mm; the table step's own check: max {:.3} mm over the board",
+        worst * 1e3,
+        mean * 1e3,
+        table_step.check.max_mm
+    );
+    assert!(worst < 1e-3, "max pixel-to-world error {} mm", worst * 1e3);
+    // The table step's own check sees the same camera at the board's corners.
+    assert!(table_step.check.max_mm < 1.0);
+
+    // Board not found, and a camera file that is not one: named.
+    let mut args = vec![
+        "calibrate",
+        "table",
+        "--image",
+        s(&photo),
+        "--camera",
+        s(&cam_file),
+    ];
+    args.extend(["--board", "7x5", "--square-mm", "15"]);
+    let err = fails(&psscan(&args));
+    assert!(
+        err.contains("table.png") && err.contains("7x5 board was not found"),
+        "{err}"
+    );
+    let mut args = vec![
+        "calibrate",
+        "table",
+        "--image",
+        s(&photo),
+        "--camera",
+        s(&hand_file),
+    ];
+    args.extend(board);
+    let err = fails(&psscan(&args));
+    assert!(
+        err.contains("rig.toml") && err.contains("calibrate camera --out"),
+        "{err}"
+    );
+
+    // The white sheet with that camera and table, from the hand-measured LEDs.
+    let sheet = t.join("sheet");
+    write_exr_frames(
+        &targets::white_sheet_frames(&truth, 8.0, 0.9, 0.02, 1, 31),
+        &sheet,
+    );
+    let ws_file = t.join("whitesheet.toml");
+    let rig_args = [
+        "--rig",
+        s(&hand_file),
+        "--camera",
+        s(&cam_file),
+        "--table",
+        s(&table_file),
+    ];
+    let (result, stdout) = whitesheet_cli(&sheet, &rig_args, &ws_file);
+    println!("{stdout}");
+    let (hand_mm, fitted_mm) = check_leds(&result, &truth);
+    println!(
+        "LEDs: hand measurements off by up to {hand_mm:.1} mm, fitted within {fitted_mm:.2} mm"
+    );
+
+    // The bundle: everything together.
+    let bundle = t.join("bundle");
+    let b = json(&psscan(&[
+        "calibrate",
+        "bundle",
+        "--rig",
+        s(&hand_file),
+        "--camera",
+        s(&cam_file),
+        "--table",
+        s(&table_file),
+        "--whitesheet",
+        s(&ws_file),
+        "--name",
+        "e2e",
+        "--out",
+        s(&bundle),
+        "--json",
+    ]));
+    let id = b["id"].as_str().unwrap().to_string();
+    let read = psscan::calibration::bundle::read(&bundle).unwrap();
+    assert!(read.calibration.camera.is_some() && read.calibration.table.is_some());
+    assert_eq!(read.rig.camera, calibrated.camera);
+    // A white sheet fitted without this camera does not go with it.
+    let (_, _) = whitesheet_cli(&sheet, &["--rig", s(&hand_file)], &t.join("plain.toml"));
+    let err = fails(&psscan(&[
+        "calibrate",
+        "bundle",
+        "--camera",
+        s(&cam_file),
+        "--table",
+        s(&table_file),
+        "--whitesheet",
+        s(&t.join("plain.toml")),
+        "--out",
+        s(&t.join("mixed")),
+    ]));
+    assert!(
+        err.contains("plain.toml") && err.contains("another camera"),
+        "{err}"
+    );
+
+    // The textile over the whole field (every 8th sensor pixel: the edges are where wrong
+    // light positions show), captured as with the bundle, solved with it and with the truth.
+    let set = t.join("set");
+    ok(&psscan(&[
+        "synth",
+        "--out",
+        s(&set),
+        "--rig",
+        s(&truth_file),
+        "--calibration",
+        s(&bundle),
+        "--width",
+        "616",
+        "--height",
+        "408",
+        "--step",
+        "8",
+        "-q",
+    ]));
+    let solve = |out: &str, extra: &[&str]| {
+        let mut args = vec!["solve", s(&set), "--out", out, "--no-png", "--json", "-q"];
+        args.extend_from_slice(extra);
+        json(&psscan(&args))
+    };
+    let out = |n: &str| t.join(n).to_str().unwrap().to_string();
+    let cited = solve(&out("m-cited"), &[]);
+    assert_eq!(cited["calibration"]["id"], id.as_str());
+    let with_truth = solve(&out("m-truth"), &["--rig", s(&truth_file)]);
+    let with_hand = solve(&out("m-hand"), &["--rig", s(&hand_file)]);
+    let err_of = |v: &serde_json::Value| v["truth"]["normal_error_deg"]["mean"].as_f64().unwrap();
+    let ratio = err_of(&cited) / err_of(&with_truth);
+    println!(
+        "mean angular error: bundle {:.4} deg, true rig {:.4} deg (ratio {ratio:.3}), hand-measured rig {:.4} deg",
+        err_of(&cited),
+        err_of(&with_truth),
+        err_of(&with_hand)
+    );
+    assert!(ratio <= 1.2, "calibrated / true = {ratio}");
+}
