@@ -645,7 +645,7 @@ pub fn solve_capture_set(
         report
             .calibration
             .as_ref()
-            .is_none_or(|used| (&used.id, &used.sha256) != (&c.id, &c.sha256))
+            .map_or(true, |used| (&used.id, &used.sha256) != (&c.id, &c.sha256))
     });
     if let Some(truth) = truth_for(&set, &decode)? {
         let (normal, albedo) = region_truth(truth, &job.region)?;

@@ -624,6 +624,7 @@ fn whitesheet_bundle_and_the_citation_in_captures_and_solves() {
         "--no-png",
         "-q",
     ]));
+    println!("{text}");
     assert!(
         text.contains(&format!("calibration: bundle {id} (sha256 {sha})")),
         "{text}"
@@ -631,7 +632,7 @@ fn whitesheet_bundle_and_the_citation_in_captures_and_solves() {
 
     // Another bundle than the one cited: refused, unless the mismatch is allowed.
     let other = t.join("other");
-    ok(&psscan(&[
+    let printed = ok(&psscan(&[
         "calibrate",
         "bundle",
         "--rig",
@@ -644,6 +645,7 @@ fn whitesheet_bundle_and_the_citation_in_captures_and_solves() {
         s(&other),
         "-q",
     ]));
+    println!("{printed}");
     let err = fails(&solve(&out("m-other"), &["--calibration", s(&other)]));
     assert!(
         err.contains(&format!("was captured with calibration bundle {id}"))
