@@ -28,6 +28,9 @@ use crate::synth::{expose, expose_mosaic, FrameEncoding, Scene, SynthSpec};
 
 pub const TRUTH_DIR: &str = "truth";
 pub const SPEC_FILE: &str = "truth/spec.toml";
+/// The rig a synthetic set was rendered with (the set's own rig copy is what a capture would
+/// store: the calibrated rig, when it cites a bundle).
+pub const TRUTH_RIG_FILE: &str = "truth/rig.toml";
 
 /// The CFA layout of psscan's synthetic camera.
 pub const SYNTH_CFA: &str = "RGGB";
@@ -80,6 +83,31 @@ pub fn write_synthetic_set(
     force: bool,
     progress: &dyn Progress,
 ) -> Result<SynthOutcome> {
+    write_synthetic_set_with(rig, spec, dir, force, None, progress)
+}
+
+/// [`write_synthetic_set`], and with `calibration` the set is what a capture with that bundle
+/// would be: the scene is rendered with `rig` (the rig as built), while the set's rig copy is
+/// the bundle's calibrated rig and the manifest cites the bundle. The rendering rig is kept
+/// as `truth/rig.toml`.
+pub fn write_synthetic_set_with(
+    rig: &Rig,
+    spec: &SynthSpec,
+    dir: &Path,
+    force: bool,
+    calibration: Option<&crate::calibration::bundle::Bundle>,
+    progress: &dyn Progress,
+) -> Result<SynthOutcome> {
+    if let Some(b) = calibration {
+        if b.rig.leds.len() != rig.leds.len() {
+            return Err(Error::Invalid(format!(
+                "calibration bundle {} describes {} LEDs, the rig renders {}",
+                b.index.id,
+                b.rig.leds.len(),
+                rig.leds.len()
+            )));
+        }
+    }
     let mut timings = BTreeMap::new();
     let start = Instant::now();
     let window = spec.window(rig);
@@ -131,8 +159,13 @@ pub fn write_synthetic_set(
             }
         }
     };
-    let mut writer = CaptureSetWriter::create(dir, rig, image, camera, force)?;
+    let stored_rig = calibration.map_or(rig, |b| &b.rig);
+    let mut writer = CaptureSetWriter::create(dir, stored_rig, image, camera, force)?;
+    if let Some(b) = calibration {
+        writer.set_calibration(b.citation())?;
+    }
     write_truth(&scene, spec, dir)?;
+    rig.save(&dir.join(TRUTH_RIG_FILE))?;
     writer.set_synthetic(SyntheticInfo {
         truth_dir: TRUTH_DIR.into(),
         spec_file: SPEC_FILE.into(),
@@ -274,7 +307,13 @@ pub fn truth_at_pixels(
     let text = std::fs::read_to_string(&spec_path).map_err(|e| Error::io(&spec_path, e))?;
     let spec: SynthSpec = toml::from_str(&text)
         .map_err(|e| Error::config(&spec_path, "spec", e.message().to_string()))?;
-    let rig = Rig::load(&set.dir.join(&set.manifest.rig_file))?;
+    // Sets written before truth/rig.toml existed were rendered with their rig copy.
+    let truth_rig = set.dir.join(TRUTH_RIG_FILE);
+    let rig = if truth_rig.is_file() {
+        Rig::load(&truth_rig)?
+    } else {
+        Rig::load(&set.dir.join(&set.manifest.rig_file))?
+    };
     let scene = Scene::build(
         &rig,
         spec.textile,
@@ -315,6 +354,88 @@ pub struct SolveJob {
     pub develop: DevelopOptions,
     /// The part of the frames to solve (crop, binning, background mask).
     pub region: RegionJob,
+    /// Which calibration bundle supplies the rig (ignored when `rig` is given).
+    pub calibration: CalibrationChoice,
+    /// Solve with a bundle other than the one the set cites (its id or checksum differ).
+    pub allow_calibration_mismatch: bool,
+}
+
+/// Where a solve's rig comes from when no rig is given explicitly.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub enum CalibrationChoice {
+    /// The bundle the set's manifest cites, read from the path recorded there; sets that cite
+    /// none use their rig copy.
+    #[default]
+    Cited,
+    /// This bundle folder; a set that cites another bundle (or this one before its files
+    /// changed) is an error unless the mismatch is allowed.
+    Bundle(PathBuf),
+    /// No bundle: the set's rig copy.
+    Ignore,
+}
+
+/// The bundle a solve of `set` uses, checked against the one the set cites; `None`: solve
+/// with the set's rig copy.
+pub fn resolve_calibration(
+    set: &CaptureSet,
+    job: &SolveJob,
+) -> Result<Option<crate::calibration::bundle::Bundle>> {
+    use crate::calibration::bundle;
+    let cited = set.manifest.calibration.as_ref();
+    let bundle = match (&job.calibration, cited) {
+        _ if job.rig.is_some() => return Ok(None),
+        (CalibrationChoice::Ignore, _) | (CalibrationChoice::Cited, None) => return Ok(None),
+        (CalibrationChoice::Bundle(dir), _) => bundle::read(dir)?,
+        (CalibrationChoice::Cited, Some(c)) => {
+            if !c.path.join(bundle::INDEX_FILE).is_file() {
+                return Err(Error::capture_set(
+                    &set.dir,
+                    format!(
+                        "cites calibration bundle {} at {}, which is not there: pass \
+                         --calibration DIR where the bundle is now, or --no-calibration to \
+                         solve with the rig copy in the set",
+                        c.id,
+                        c.path.display()
+                    ),
+                ));
+            }
+            bundle::read(&c.path).map_err(|e| {
+                Error::capture_set(
+                    &set.dir,
+                    format!("its calibration bundle {} cannot be used: {e}", c.id),
+                )
+            })?
+        }
+    };
+    if let Some(c) = cited {
+        let (id, sha) = (&bundle.index.id, &bundle.index.sha256);
+        if (&c.id != id || &c.sha256 != sha) && !job.allow_calibration_mismatch {
+            return Err(Error::capture_set(
+                &set.dir,
+                format!(
+                    "was captured with calibration bundle {} (sha256 {}), but the bundle at {} \
+                     is {id} (sha256 {sha}): solve with the bundle the set cites, or pass \
+                     --allow-calibration-mismatch to use this one anyway (the report records \
+                     both)",
+                    c.id,
+                    c.sha256,
+                    bundle.dir.display()
+                ),
+            ));
+        }
+    }
+    if bundle.rig.leds.len() != set.rig.leds.len() {
+        return Err(Error::capture_set(
+            &set.dir,
+            format!(
+                "has frames for {} LEDs, but calibration bundle {} describes {}",
+                set.rig.leds.len(),
+                bundle.index.id,
+                bundle.rig.leds.len()
+            ),
+        ));
+    }
+    Ok(Some(bundle))
 }
 
 /// Which pixels a solve covers: crop, then 2x2 binning, then the background mask.
@@ -475,7 +596,11 @@ pub fn solve_capture_set(
     let mut timings = BTreeMap::new();
 
     let start = Instant::now();
-    let set = CaptureSet::open(dir, job.rig.clone())?;
+    let mut set = CaptureSet::open(dir, job.rig.clone())?;
+    let calibration = resolve_calibration(&set, job)?;
+    if let Some(bundle) = &calibration {
+        set.rig = bundle.rig.clone();
+    }
     let loaded = set.load_frames_with(&job.develop, progress)?;
     let frames = loaded.frames;
     let mut decode = loaded.info;
@@ -483,7 +608,13 @@ pub fn solve_capture_set(
     timings.insert("decode".into(), start.elapsed().as_secs_f64());
 
     let start = Instant::now();
-    let lights = solve::LightSource::Rig(&set.rig);
+    let lights = match calibration.as_ref().and_then(|b| b.gains.as_deref()) {
+        Some(gains) => solve::LightSource::Calibrated {
+            rig: &set.rig,
+            gains,
+        },
+        None => solve::LightSource::Rig(&set.rig),
+    };
     let noise = decoded_noise_model(&set.rig, &decode);
     let (frames, mask, noise, region_info) = select_region(frames, &lights, noise, &job.region)?;
     timings.insert("region".into(), start.elapsed().as_secs_f64());
@@ -509,6 +640,13 @@ pub fn solve_capture_set(
 
     let outputs = relocate(outputs, out);
     let mut report = Report::new(dir, &set.rig.name, &result, &job.options, outputs);
+    report.calibration = calibration.as_ref().map(|b| b.citation());
+    report.calibration_cited_by_set = set.manifest.calibration.clone().filter(|c| {
+        report
+            .calibration
+            .as_ref()
+            .map_or(true, |used| (&used.id, &used.sha256) != (&c.id, &c.sha256))
+    });
     if let Some(truth) = truth_for(&set, &decode)? {
         let (normal, albedo) = region_truth(truth, &job.region)?;
         report.truth = Some(eval::compare(&result, &normal, &albedo));

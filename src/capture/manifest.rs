@@ -27,9 +27,10 @@ pub struct Manifest {
     pub version: u32,
     /// The rig the set was shot with, a file inside the set (a copy, so the set stands alone).
     pub rig_file: String,
-    /// The calibration bundle the rig came from, when there was one.
+    /// The calibration bundle the rig came from, when there was one: its id, checksum and
+    /// where it was. A solve checks the bundle it uses against this.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub calibration_id: Option<String>,
+    pub calibration: Option<crate::calibration::bundle::CalibrationRef>,
     pub image: ImageInfo,
     pub camera: CameraSettings,
     /// Present for sets rendered by `psscan synth`: where the ground truth lies.
@@ -257,7 +258,7 @@ mod tests {
             format: FORMAT.into(),
             version: VERSION,
             rig_file: "rig.toml".into(),
-            calibration_id: None,
+            calibration: None,
             image: ImageInfo {
                 width: 4,
                 height: 3,

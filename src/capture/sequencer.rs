@@ -33,6 +33,8 @@ pub struct CaptureOptions {
     pub light_timeout_ms: Option<u32>,
     /// Ground truth of a synthetic scene, recorded in a new set's manifest.
     pub synthetic: Option<SyntheticInfo>,
+    /// The calibration bundle the rig came from, recorded in a new set's manifest.
+    pub calibration: Option<crate::calibration::bundle::CalibrationRef>,
 }
 
 impl Default for CaptureOptions {
@@ -43,6 +45,7 @@ impl Default for CaptureOptions {
             force: false,
             light_timeout_ms: None,
             synthetic: None,
+            calibration: None,
         }
     }
 }
@@ -317,6 +320,9 @@ fn open_set(
     let mut writer = CaptureSetWriter::create(dir, rig, image, CameraSettings::default(), true)?;
     if let Some(info) = &options.synthetic {
         writer.set_synthetic(info.clone())?;
+    }
+    if let Some(calibration) = &options.calibration {
+        writer.set_calibration(calibration.clone())?;
     }
     Ok((writer, Vec::new()))
 }

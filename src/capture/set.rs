@@ -57,7 +57,7 @@ impl CaptureSetWriter {
                 format: FORMAT.into(),
                 version: VERSION,
                 rig_file: RIG_FILE.into(),
-                calibration_id: None,
+                calibration: None,
                 image,
                 camera,
                 synthetic: None,
@@ -125,6 +125,15 @@ impl CaptureSetWriter {
             .frames
             .retain(|f| !(f.kind == kind && f.light == light));
         self.manifest.frames.push(entry);
+        self.write_manifest()
+    }
+
+    /// Records the calibration bundle the set's rig came from.
+    pub fn set_calibration(
+        &mut self,
+        calibration: crate::calibration::bundle::CalibrationRef,
+    ) -> Result<()> {
+        self.manifest.calibration = Some(calibration);
         self.write_manifest()
     }
 

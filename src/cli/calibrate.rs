@@ -13,6 +13,7 @@ use psscan::calibration::wizard::{ChartVerdict, Step, TargetSource, Wizard, VIEW
 use psscan::capture::camera::{Camera, LitSource};
 use psscan::capture::emulator::PinLog;
 
+use super::calibrate_steps::{self as steps, BundleArgs, GraychartArgs, TableArgs, WhitesheetArgs};
 use super::capture::{interrupt_on_ctrl_c, open_camera, Controller, PortArgs};
 use super::progress::Bars;
 use super::{load_rig, print_json};
@@ -29,16 +30,24 @@ pub struct CalibrateArgs {
 enum CalibrateStep {
     /// Camera intrinsics and distortion from chessboard photographs in a folder (OpenCV).
     Camera(CameraArgs),
+    /// The table's pose from one photograph of the chessboard lying on it (OpenCV).
+    Table(TableArgs),
+    /// Per-light white balance and linearity from RAW photographs of a gray chart.
+    Graychart(GraychartArgs),
+    /// Per-light intensity maps and each LED's fitted position from white-sheet photographs.
+    Whitesheet(WhitesheetArgs),
+    /// Assemble the steps' results into a calibration bundle that captures and solves cite.
+    Bundle(BundleArgs),
 }
 
 #[derive(Args)]
-struct BoardArgs {
+pub(super) struct BoardArgs {
     /// Inner corners of the chessboard, COLSxROWS.
     #[arg(long, default_value = "9x6")]
-    board: String,
+    pub(super) board: String,
     /// Side of one square in millimetres.
     #[arg(long, default_value_t = 25.0)]
-    square_mm: f64,
+    pub(super) square_mm: f64,
 }
 
 #[derive(Args)]
@@ -141,6 +150,10 @@ fn chart_world(text: &str) -> anyhow::Result<[f64; 4]> {
 pub fn calibrate(args: &CalibrateArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     match &args.step {
         Some(CalibrateStep::Camera(a)) => camera_step(a, json, bars),
+        Some(CalibrateStep::Table(a)) => steps::table(a, json),
+        Some(CalibrateStep::Graychart(a)) => steps::graychart(a, json),
+        Some(CalibrateStep::Whitesheet(a)) => steps::whitesheet(a, json, bars),
+        Some(CalibrateStep::Bundle(a)) => steps::bundle(a, json),
         None => wizard(&args.wizard, json, bars),
     }
 }

@@ -140,8 +140,12 @@ pub struct CaptureArgs {
     frame_ext: Option<String>,
     /// Rig description for a new set (default: the embedded default rig; a resumed set uses
     /// its own copy).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "calibration")]
     rig: Option<PathBuf>,
+    /// Calibration bundle folder for a new set: its calibrated rig is the set's rig, and the
+    /// manifest cites the bundle (id, checksum, path), which solves then use and check.
+    #[arg(long, value_name = "BUNDLE_DIR")]
+    calibration: Option<PathBuf>,
     /// Simulated camera: read the lit LEDs from this emulator pin log (an emulator started
     /// by hand); with --firmware-sim, where the emulator writes its pin log.
     #[arg(long)]
@@ -152,8 +156,15 @@ pub struct CaptureArgs {
 
 pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let interrupt = interrupt_on_ctrl_c()?;
-    let rig = if args.resume && args.out.join("manifest.toml").is_file() {
+    let resuming = args.resume && args.out.join("manifest.toml").is_file();
+    let bundle = match &args.calibration {
+        Some(dir) if !resuming => Some(psscan::calibration::bundle::read(dir)?),
+        _ => None,
+    };
+    let rig = if resuming {
         CaptureSet::open(&args.out, None)?.rig
+    } else if let Some(b) = &bundle {
+        b.rig.clone()
     } else {
         load_rig(&args.rig)?
     };
@@ -164,6 +175,7 @@ pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()
         force: args.force,
         light_timeout_ms: args.light_timeout_ms,
         synthetic: None,
+        calibration: bundle.as_ref().map(|b| b.citation()),
     };
     let shot_timeout = Duration::from_secs_f64(args.shot_timeout_s.max(0.1));
     let camera = args.camera.clone().unwrap_or_else(|| {

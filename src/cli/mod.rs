@@ -4,6 +4,7 @@
 //! Exit codes: 0 success, 1 failure (the message says what and where), 2 usage error.
 
 mod calibrate;
+mod calibrate_steps;
 mod capture;
 mod progress;
 
@@ -12,7 +13,7 @@ use std::path::{Path, PathBuf};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use psscan::maps::{MapOptions, NormalConvention};
 use psscan::offline::{self, BatchOptions, BatchSummary};
-use psscan::pipeline::{self, DemoSummary, RegionJob, SolveJob};
+use psscan::pipeline::{self, CalibrationChoice, DemoSummary, RegionJob, SolveJob};
 use psscan::raw::{DevelopOptions, Resolution};
 use psscan::region::{Background, Roi};
 use psscan::rig::Rig;
@@ -54,7 +55,8 @@ enum Command {
     /// Bench work on the LED controller: list ports, identify, test, switch LEDs.
     Lights(capture::LightsArgs),
     /// Calibrate the rig: without a subcommand, the wizard (camera, table, white sheet, flatness
-    /// check; resumable); `calibrate camera` runs one step over photographs.
+    /// check; resumable); `calibrate camera|table|graychart|whitesheet` runs one step over
+    /// photographs, `calibrate bundle` assembles their results.
     Calibrate(calibrate::CalibrateArgs),
     /// Benchmark every solver variant on standard synthetic scenes: run time against error,
     /// beside the memory-read floor and a NumPy peer.
@@ -103,6 +105,11 @@ struct SynthArgs {
     /// Replace an existing capture set in the folder.
     #[arg(long)]
     force: bool,
+    /// Calibration bundle folder: the set is written as a capture with this bundle would be
+    /// (its rig copy is the bundle's calibrated rig, its manifest cites the bundle), while the
+    /// scene is rendered with --rig, the rig as built.
+    #[arg(long, value_name = "BUNDLE_DIR")]
+    calibration: Option<PathBuf>,
     #[command(flatten)]
     scene: SceneArgs,
 }
@@ -169,9 +176,22 @@ struct SolveArgs {
     /// Folder for the maps and report.json; with several sets, each gets OUT/<set folder name>.
     #[arg(long)]
     out: PathBuf,
-    /// Rig description to use instead of the copy stored in each set.
-    #[arg(long)]
+    /// Rig description to use instead of the copy stored in each set (and instead of any
+    /// calibration bundle the set cites).
+    #[arg(long, conflicts_with_all = ["calibration", "no_calibration"])]
     rig: Option<PathBuf>,
+    /// Calibration bundle folder: solve with its calibrated rig and per-light gain grids.
+    /// Default: the bundle each set's manifest cites, from the path recorded there. A set that
+    /// cites another bundle, or this one before its files changed, is refused.
+    #[arg(long, value_name = "BUNDLE_DIR")]
+    calibration: Option<PathBuf>,
+    /// Use no calibration bundle, even one the set cites: solve with the set's rig copy.
+    #[arg(long, conflicts_with = "calibration")]
+    no_calibration: bool,
+    /// Use --calibration's bundle even where a set cites another one (the report records
+    /// both).
+    #[arg(long, requires = "calibration")]
+    allow_calibration_mismatch: bool,
     /// Replace existing solves in the output folders.
     #[arg(long)]
     force: bool,
@@ -311,6 +331,8 @@ impl SolveFlags {
             },
             rig: None,
             force: false,
+            calibration: Default::default(),
+            allow_calibration_mismatch: false,
             develop: DevelopOptions {
                 resolution: match self.resolution {
                     ResolutionArg::Full => Resolution::Full,
@@ -412,7 +434,19 @@ fn print_demo(s: &DemoSummary) {
 fn synth(args: &SynthArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let rig = load_rig(&args.rig)?;
     let spec = args.scene.spec();
-    let outcome = pipeline::write_synthetic_set(&rig, &spec, &args.out, args.force, bars)?;
+    let bundle = args
+        .calibration
+        .as_deref()
+        .map(psscan::calibration::bundle::read)
+        .transpose()?;
+    let outcome = pipeline::write_synthetic_set_with(
+        &rig,
+        &spec,
+        &args.out,
+        args.force,
+        bundle.as_ref(),
+        bars,
+    )?;
     if json {
         print_json(&outcome);
     } else {
@@ -432,6 +466,12 @@ fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let mut job = args.solve.job()?;
     job.force = args.force;
     job.rig = args.rig.as_ref().map(|p| Rig::load(p)).transpose()?;
+    job.calibration = match (&args.calibration, args.no_calibration) {
+        (Some(dir), _) => CalibrationChoice::Bundle(dir.clone()),
+        (None, true) => CalibrationChoice::Ignore,
+        (None, false) => CalibrationChoice::Cited,
+    };
+    job.allow_calibration_mismatch = args.allow_calibration_mismatch;
     if let [set] = args.sets.as_slice() {
         let report = offline::solve_set(set, &args.out, &job, bars)?;
         if json {
@@ -530,6 +570,29 @@ fn print_solve(set: &Path, out: &Path, report: &psscan::maps::Report) {
             truth.solved,
             truth.normal_error_deg.mean,
             truth.normal_error_deg.median
+        );
+    }
+    match (&report.calibration, &report.calibration_cited_by_set) {
+        (Some(c), _) => println!(
+            "  calibration: bundle {} (sha256 {}) at {}",
+            c.id,
+            c.sha256,
+            c.path.display()
+        ),
+        (None, Some(c)) => println!(
+            "  calibration: none used; the set cites bundle {} (sha256 {})",
+            c.id, c.sha256
+        ),
+        (None, None) => println!("  calibration: none (the set's rig copy)"),
+    }
+    if let Some(c) = report
+        .calibration_cited_by_set
+        .as_ref()
+        .filter(|_| report.calibration.is_some())
+    {
+        println!(
+            "  WARNING: the set cites another bundle, {} (sha256 {})",
+            c.id, c.sha256
         );
     }
     if let Some(decode) = &report.decode {

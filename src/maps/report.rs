@@ -45,6 +45,13 @@ pub struct Report {
     /// DiLiGenT, which have no albedo truth).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub normal_truth: Option<crate::eval::MaskedNormalComparison>,
+    /// The calibration bundle whose rig (and gain grids) the solve used.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<crate::calibration::bundle::CalibrationRef>,
+    /// The bundle the capture set cites, when the solve did not use it (`--no-calibration`,
+    /// `--rig`, or `--allow-calibration-mismatch` with another bundle).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calibration_cited_by_set: Option<crate::calibration::bundle::CalibrationRef>,
 }
 
 #[derive(Clone, Copy, Debug, Serialize)]
@@ -101,6 +108,8 @@ impl Report {
             outputs,
             decode: None,
             normal_truth: None,
+            calibration: None,
+            calibration_cited_by_set: None,
         }
     }
 
