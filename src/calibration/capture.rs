@@ -438,6 +438,9 @@ impl TargetSource for Captured {
         world: [f64; 4],
         progress: &dyn Progress,
     ) -> Result<(Vec<Mosaic>, SensorWindow)> {
+        // Under every LED in turn, not the view LED: white balance and linearity are per
+        // light (each LED has its own colour and brightness), so the chart is a capture set
+        // shot by the sequencer, like the white sheet.
         self.place(
             |_| Target::GrayChart {
                 chart: chart.clone(),

@@ -388,6 +388,21 @@ fn walk(
     };
     let source = source.source.as_mut();
     while wiz.state.step == Step::CameraViews {
+        // Unattended, nobody can move the board or fix the light: stop instead of looping.
+        if args.yes && wiz.state.rejected.len() >= 2 * VIEWS_NEEDED {
+            let last = wiz
+                .state
+                .rejected
+                .last()
+                .map(|r| r.1.clone())
+                .unwrap_or_default();
+            anyhow::bail!(
+                "{} chessboard photographs rejected, {} of {VIEWS_NEEDED} accepted (last: {last}); \
+                 check the camera, the board and the light, then run the same command to resume",
+                wiz.state.rejected.len(),
+                wiz.state.accepted.len()
+            );
+        }
         let need = VIEWS_NEEDED - wiz.state.accepted.len();
         if !go_on(
             &format!("step 1/5 camera: hold the chessboard in view ({need} more views needed)"),
