@@ -96,7 +96,20 @@ pub struct Variant {
     pub options: SolveOptions,
     /// Also run above [`LARGE_MP`] (the slow per-pixel variants are reported at 1 MP only).
     pub large: bool,
+    /// Run only on these scenes (empty: every scene).
+    pub scenes: &'static [SceneKind],
+    /// Timed once whatever the repeats (the sheen fit takes ~10 us per pixel).
+    pub single_run: bool,
 }
+
+/// The scenes the sheen-fit variants run on (on the others the sheen model has nothing to fit).
+const SHEEN_SCENES: &[SceneKind] = &[SceneKind::Sheen, SceneKind::ShadowsSheen];
+
+/// Suffix of the variants that fit the material's sheen lobe (`--sheen-fit`).
+pub const SHEEN_FIT: &str = " + sheen fit";
+
+/// The adaptive estimator on the streaming kernel: what its cost is compared with [`FAST_LS`].
+pub const FAST_ADAPTIVE: &str = "adaptive fast f32 tiled";
 
 /// The variants every scene is solved with.
 pub fn variants() -> Vec<Variant> {
@@ -108,10 +121,32 @@ pub fn variants() -> Vec<Variant> {
     let v = |name: &str, options: SolveOptions| Variant {
         name: name.into(),
         large: options.method != Method::Svd
-            && options.estimator == Estimator::LeastSquares
+            && options.estimator != Estimator::Robust
             && (options.tile_tolerance_deg.is_some() || !options.streaming())
             && !options.predict_error,
         options,
+        scenes: &[],
+        single_run: false,
+    };
+    // The material's lobe, as the renderer's (`synth::Sheen::default`).
+    let sheen = {
+        let s = Sheen::default();
+        solve::SheenModel {
+            f0: s.f0,
+            alpha: s.alpha,
+            amplitude: s.amplitude,
+        }
+    };
+    let with_sheen = |variant: Variant| {
+        let mut options = variant.options;
+        options.robust.sheen = Some(sheen);
+        Variant {
+            name: format!("{}{SHEEN_FIT}", variant.name),
+            options,
+            large: false,
+            scenes: SHEEN_SCENES,
+            single_run: true,
+        }
     };
     let streaming = |precision, tiles: Option<f64>, normal_only| SolveOptions {
         precision,
@@ -121,8 +156,9 @@ pub fn variants() -> Vec<Variant> {
         ..base.clone()
     };
     let tiles = Some(TILE_TOLERANCE_DEG);
-    // The robust estimators (exact kernel, f64), with the predicted error they rely on.
-    let estimators = Estimator::ALL
+    // The robust estimators (exact kernel, f64), with the predicted error they rely on, and
+    // the adaptive one on the streaming kernel.
+    let mut estimators: Vec<Variant> = Estimator::ALL
         .into_iter()
         .filter(|&e| e != Estimator::LeastSquares)
         .map(|estimator| {
@@ -133,7 +169,16 @@ pub fn variants() -> Vec<Variant> {
                     ..SolveOptions::default()
                 },
             )
-        });
+        })
+        .collect();
+    estimators.push(v(
+        FAST_ADAPTIVE,
+        SolveOptions {
+            estimator: Estimator::Adaptive,
+            ..streaming(Precision::F32, tiles, false)
+        },
+    ));
+    let sheen_fits: Vec<Variant> = estimators.iter().cloned().map(with_sheen).collect();
     let mut all = vec![
         v("ls f64 per-pixel (exact kernel)", base.clone()),
         v(
@@ -167,6 +212,7 @@ pub fn variants() -> Vec<Variant> {
         ),
     ];
     all.extend(estimators);
+    all.extend(sheen_fits);
     all
 }
 
@@ -194,6 +240,9 @@ pub struct Row {
     pub max_dev_from_exact_deg: Option<f64>,
     pub mean_dev_from_exact_deg: Option<f64>,
     pub solved_fraction: f64,
+    /// Pixels the robust fit ran on, as a fraction of all (0 for least squares, the floor and
+    /// the peers).
+    pub escalated_fraction: f64,
 }
 
 /// Peak memory of one solve.
@@ -349,6 +398,7 @@ pub fn run(options: &BenchOptions, progress: &dyn Progress) -> Result<BenchResul
                 max_dev_from_exact_deg: None,
                 mean_dev_from_exact_deg: None,
                 solved_fraction: 0.0,
+                escalated_fraction: 0.0,
             };
             let floor_s = median(
                 (0..options.repeats.max(3))
@@ -367,9 +417,12 @@ pub fn run(options: &BenchOptions, progress: &dyn Progress) -> Result<BenchResul
                 if mp > LARGE_MP && !variant.large {
                     continue;
                 }
+                if !variant.scenes.is_empty() && !variant.scenes.contains(&kind) {
+                    continue;
+                }
                 let slow =
                     !variant.options.streaming() || variant.options.tile_tolerance_deg.is_none();
-                let runs = if slow && mp > LARGE_MP {
+                let runs = if variant.single_run || (slow && mp > LARGE_MP) {
                     1
                 } else {
                     options.repeats
@@ -452,6 +505,7 @@ fn fill_errors(row: &mut Row, result: &SolveResult, scene: &Scene, floor_s: f64)
     row.mean_error_deg = cmp.normal_error_deg.mean;
     row.p95_error_deg = cmp.normal_error_deg.p95;
     row.solved_fraction = cmp.pixels as f64 / result.status.len().max(1) as f64;
+    row.escalated_fraction = result.escalated as f64 / result.status.len().max(1) as f64;
 }
 
 /// Peak heap of the fast least-squares solve against its decoded input.

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use plotters::prelude::*;
 
-use super::{BenchResult, Row, EXACT_LS, FAST_LS};
+use super::{BenchResult, Row, EXACT_LS, FAST_ADAPTIVE, FAST_LS, SHEEN_FIT};
 use crate::error::{Error, Result};
 
 /// The headline ratios at one size.
@@ -53,6 +53,61 @@ pub fn targets(result: &BenchResult) -> Vec<Targets> {
                 exact_s: exact.seconds,
                 exact_over_fast: exact.seconds / fast.seconds,
             })
+        })
+        .collect()
+}
+
+/// Issue 6's done-when figures for the estimators at one size, from the rows of one run.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct EstimatorFigures {
+    pub megapixels: f64,
+    /// Lambertian scene: the adaptive estimator on the streaming kernel over the streaming
+    /// least squares it starts from (both f32, tiled).
+    pub adaptive_over_ls_time: Option<f64>,
+    /// Lambertian scene: pixels the adaptive estimator escalated (its false alarms).
+    pub adaptive_false_escalation: Option<f64>,
+    /// Mean angular errors: least squares on the Lambertian scene, least squares and the
+    /// adaptive estimator with the sheen fit on the shadows + sheen scene.
+    pub lambertian_ls_error_deg: Option<f64>,
+    pub shadows_sheen_ls_error_deg: Option<f64>,
+    pub shadows_sheen_adaptive_error_deg: Option<f64>,
+    /// `1 - adaptive / ls` on the shadows + sheen scene (at least 0.5 to pass).
+    pub error_reduction: Option<f64>,
+    /// Adaptive on shadows + sheen over least squares on the Lambertian scene (at most 1.5).
+    pub over_lambertian_ls: Option<f64>,
+}
+
+/// The estimator figures at each size.
+pub fn estimator_figures(result: &BenchResult) -> Vec<EstimatorFigures> {
+    let mut sizes: Vec<f64> = result.rows.iter().map(|r| r.megapixels).collect();
+    sizes.dedup();
+    sizes.sort_by(f64::total_cmp);
+    sizes.dedup();
+    let adaptive_sheen = format!("{FAST_ADAPTIVE}{SHEEN_FIT}");
+    sizes
+        .into_iter()
+        .map(|mp| {
+            let find = |scene: &str, name: &str| {
+                result
+                    .rows
+                    .iter()
+                    .find(|r| r.scene == scene && r.megapixels == mp && r.variant == name)
+            };
+            let fast = find("lambertian", FAST_LS);
+            let adaptive = find("lambertian", FAST_ADAPTIVE);
+            let lambert_ls = find("lambertian", EXACT_LS).map(|r| r.mean_error_deg);
+            let ls = find("shadows+sheen", EXACT_LS).map(|r| r.mean_error_deg);
+            let ad = find("shadows+sheen", &adaptive_sheen).map(|r| r.mean_error_deg);
+            EstimatorFigures {
+                megapixels: mp,
+                adaptive_over_ls_time: fast.zip(adaptive).map(|(f, a)| a.seconds / f.seconds),
+                adaptive_false_escalation: adaptive.map(|a| a.escalated_fraction),
+                lambertian_ls_error_deg: lambert_ls,
+                shadows_sheen_ls_error_deg: ls,
+                shadows_sheen_adaptive_error_deg: ad,
+                error_reduction: ls.zip(ad).map(|(l, a)| 1.0 - a / l),
+                over_lambertian_ls: lambert_ls.zip(ad).map(|(l, a)| a / l),
+            }
         })
         .collect()
 }
@@ -104,6 +159,26 @@ pub fn markdown(result: &BenchResult) -> String {
             m.ratio
         );
     }
+    let _ = writeln!(
+        s,
+        "\n## Estimators (issue 6)\n\nLambertian: `{FAST_ADAPTIVE}` over `{FAST_LS}` (time, target <= 1.3) and the pixels it escalated; shadows + sheen: `{FAST_ADAPTIVE}{SHEEN_FIT}` against `{EXACT_LS}` (error reduction, target >= 50 %) and against least squares on the Lambertian scene (target <= 1.5).\n\n| MP | adaptive / ls time | false escalations | ls err, Lambertian | ls err, shadows+sheen | adaptive err, shadows+sheen | reduction | / Lambertian ls |\n|---|---|---|---|---|---|---|---|"
+    );
+    for f in estimator_figures(result) {
+        let _ = writeln!(
+            s,
+            "| {:.1} | {} | {} | {} | {} | {} | {} | {} |",
+            f.megapixels,
+            opt(f.adaptive_over_ls_time, 2),
+            f.adaptive_false_escalation
+                .map_or("-".into(), |v| format!("{:.3} %", 100.0 * v)),
+            opt(f.lambertian_ls_error_deg, 4),
+            opt(f.shadows_sheen_ls_error_deg, 4),
+            opt(f.shadows_sheen_adaptive_error_deg, 4),
+            f.error_reduction
+                .map_or("-".into(), |v| format!("{:.0} %", 100.0 * v)),
+            opt(f.over_lambertian_ls, 2),
+        );
+    }
     for (mp, tile, err) in &result.tiles {
         let _ = writeln!(
             s,
@@ -112,22 +187,24 @@ pub fn markdown(result: &BenchResult) -> String {
     }
     let _ = writeln!(
         s,
-        "\n## All runs\n\n`dev` = angle to the exact f64 least-squares kernel's normals on the same frames.\n\n| scene | MP | variant | time (s) | x floor | mean err (deg) | p95 err (deg) | max dev (deg) | mean dev (deg) | solved |\n|---|---|---|---|---|---|---|---|---|---|"
+        "\n## All runs\n\n`dev` = angle to the exact f64 least-squares kernel's normals on the same frames.\n\n| scene | MP | variant | runs | time (s) | x floor | mean err (deg) | p95 err (deg) | max dev (deg) | mean dev (deg) | solved | escalated |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for r in &result.rows {
         let _ = writeln!(
             s,
-            "| {} | {:.1} | {} | {:.3} | {:.2} | {:.4} | {:.4} | {} | {} | {:.2} % |",
+            "| {} | {:.1} | {} | {} | {:.3} | {:.2} | {:.4} | {:.4} | {} | {} | {:.2} % | {:.2} % |",
             r.scene,
             r.megapixels,
             r.variant,
+            r.runs,
             r.seconds,
             r.over_floor,
             r.mean_error_deg,
             r.p95_error_deg,
             opt(r.max_dev_from_exact_deg, 6),
             opt(r.mean_dev_from_exact_deg, 6),
-            100.0 * r.solved_fraction
+            100.0 * r.solved_fraction,
+            100.0 * r.escalated_fraction
         );
     }
     s
@@ -139,7 +216,11 @@ pub fn write(result: &BenchResult, dir: &Path) -> Result<()> {
     let md = dir.join("bench.md");
     std::fs::write(&md, markdown(result)).map_err(|e| Error::io(&md, e))?;
     let json = dir.join("bench.json");
-    let value = serde_json::json!({ "result": result, "targets": targets(result) });
+    let value = serde_json::json!({
+        "result": result,
+        "targets": targets(result),
+        "estimators": estimator_figures(result),
+    });
     let text = serde_json::to_string_pretty(&value).expect("serialisable");
     std::fs::write(&json, text).map_err(|e| Error::io(&json, e))?;
     plot(result, &dir.join("bench.svg"))

@@ -636,6 +636,7 @@ fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         print_json(&serde_json::json!({
             "result": result,
             "targets": psscan::bench::report::targets(&result),
+            "estimators": psscan::bench::report::estimator_figures(&result),
             "out": args.out,
         }));
     } else {

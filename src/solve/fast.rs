@@ -179,6 +179,24 @@ pub struct RowScratch<T> {
     pixel: Vec<f64>,
 }
 
+impl<T: Real> RowScratch<T> {
+    /// Buffers for the rows of `ctx`.
+    pub fn new(ctx: &Context) -> Self {
+        let stride = tiles::stride(ctx.illumination.len());
+        let nodes_x = match ctx.coefficients {
+            Coefficients::Tiled(g) => g.nodes_x,
+            Coefficients::PerPixel => 0,
+        };
+        RowScratch {
+            coef: vec![[T::zero(); LANES]; stride],
+            row_left: vec![T::zero(); nodes_x * stride],
+            row_slope: vec![T::zero(); nodes_x * stride],
+            exact: Scratch::with_capacity(ctx.illumination.len()),
+            pixel: vec![0.0; stride],
+        }
+    }
+}
+
 /// Solves all rows with the streaming kernel in precision `T`.
 pub fn solve_rows<T: Real>(
     ctx: &Context,
@@ -186,20 +204,9 @@ pub fn solve_rows<T: Real>(
     progress: &dyn Progress,
     row_fn: fn(&Context, usize, &mut RowOut, &mut RowScratch<T>),
 ) {
-    let stride = tiles::stride(ctx.illumination.len());
-    let nodes_x = match ctx.coefficients {
-        Coefficients::Tiled(g) => g.nodes_x,
-        Coefficients::PerPixel => 0,
-    };
     let rows = RowOut::split(result);
     rows.into_par_iter().enumerate().for_each_init(
-        || RowScratch::<T> {
-            coef: vec![[T::zero(); LANES]; stride],
-            row_left: vec![T::zero(); nodes_x * stride],
-            row_slope: vec![T::zero(); nodes_x * stride],
-            exact: Scratch::with_capacity(ctx.illumination.len()),
-            pixel: vec![0.0; stride],
-        },
+        || RowScratch::<T>::new(ctx),
         |scratch, (y, mut row)| {
             row_fn(ctx, y, &mut row, scratch);
             progress.advance(1);
@@ -661,7 +668,7 @@ fn solve_chunk<T: Real, const FMA: bool>(
 }
 
 /// Resets pixel `x` of `row` to the unsolved defaults with `status`.
-fn reset_pixel(row: &mut RowOut, x: usize, status: PixelStatus) {
+pub(super) fn reset_pixel(row: &mut RowOut, x: usize, status: PixelStatus) {
     for d in 0..3 {
         row.normal[d][x] = if d == 2 { 1.0 } else { 0.0 };
         row.albedo[d][x] = 0.0;

@@ -79,7 +79,9 @@ pub enum Estimator {
     #[value(name = "robust")]
     Robust,
     /// Least squares everywhere; the robust fit only where the least-squares residual fails a
-    /// chi-square test against the noise model. See `adaptive`.
+    /// chi-square test against the noise model. See `adaptive`. With the streaming kernel
+    /// (`--precision f32`, `--tile-tolerance`) the fast least squares runs everywhere and
+    /// only the pixels its residual screen flags are solved again by the exact kernel.
     #[default]
     #[serde(rename = "adaptive")]
     #[value(name = "adaptive")]
@@ -157,7 +159,8 @@ pub struct SolveOptions {
 }
 
 impl SolveOptions {
-    /// Whether the streaming kernel (least squares only) solves the pixels.
+    /// Whether the streaming kernel solves the pixels (the least-squares and adaptive
+    /// estimators; the adaptive one sends the pixels its screen flags to the exact kernel).
     pub fn streaming(&self) -> bool {
         self.streaming_kernel
             || self.precision == Precision::F32
@@ -374,7 +377,7 @@ pub fn solve(
 
     let mut result = SolveResult::new(width, height);
     progress.begin("solve", height as u64);
-    if options.streaming() {
+    result.escalated = if options.streaming() {
         solve_streaming(
             input,
             options,
@@ -382,11 +385,10 @@ pub fn solve(
             &kernel,
             &mut result,
             progress,
-        );
-        progress.end();
-        return Ok(result);
-    }
-    result.escalated = solve_pass(input, &kernel, &illumination, &mut result, progress, false);
+        )
+    } else {
+        solve_pass(input, &kernel, &illumination, &mut result, progress, false)
+    };
     progress.end();
     if needs_sheen_everywhere(options, &result) {
         // The sheen lobe brightens many lights smoothly, and part of its bias on the normal is
@@ -446,7 +448,9 @@ fn needs_sheen_everywhere(options: &SolveOptions, result: &SolveResult) -> bool 
             > options.robust.sheen_scene_fraction * solved as f64
 }
 
-/// The streaming kernel at the requested precision and coefficient source.
+/// The streaming kernel at the requested precision and coefficient source; for the adaptive
+/// estimator followed, row by row, by the exact kernel where the screen asks for it. Returns
+/// how many pixels the robust fit ran on.
 fn solve_streaming(
     input: &SolveInput,
     options: &SolveOptions,
@@ -454,7 +458,7 @@ fn solve_streaming(
     kernel: &kernel::Kernel,
     result: &mut SolveResult,
     progress: &dyn Progress,
-) {
+) -> usize {
     let (w, h) = (input.frames.width, input.frames.height);
     let coefficients = match options.tile_tolerance_deg {
         Some(tolerance) => match tiles::plan(illumination, w, h, tolerance) {
@@ -464,10 +468,42 @@ fn solve_streaming(
         None => fast::Coefficients::PerPixel,
     };
     let ctx = fast::Context::new(input, options, illumination, &coefficients, kernel);
+    if options.estimator == Estimator::Adaptive {
+        // The screen's slack for interpolated directions: the tolerance the tile planner kept
+        // the grid within.
+        let tile_error_deg = match &coefficients {
+            fast::Coefficients::Tiled(_) => options.tile_tolerance_deg.unwrap_or(0.0),
+            fast::Coefficients::PerPixel => 0.0,
+        };
+        let chi = kernel.chi_square();
+        let screen = adaptive::Screen::new(chi, options, input, illumination, tile_error_deg);
+        let (kernel, screen) = (kernel, &screen);
+        return match options.precision {
+            Precision::F32 => adaptive::solve_streaming(
+                &ctx,
+                kernel,
+                screen,
+                illumination,
+                result,
+                progress,
+                fast::row_f32,
+            ),
+            Precision::F64 => adaptive::solve_streaming(
+                &ctx,
+                kernel,
+                screen,
+                illumination,
+                result,
+                progress,
+                fast::row_f64,
+            ),
+        };
+    }
     match options.precision {
         Precision::F32 => fast::solve_rows::<f32>(&ctx, result, progress, fast::row_f32),
         Precision::F64 => fast::solve_rows::<f64>(&ctx, result, progress, fast::row_f64),
     }
+    0
 }
 
 fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illumination) -> Result<()> {
@@ -505,12 +541,13 @@ fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illuminatio
             )));
         }
     }
-    if options.streaming() && options.estimator != Estimator::LeastSquares {
-        return Err(Error::Invalid(format!(
-            "the streaming kernel (--precision f32, --tile-tolerance) is plain least squares: \
-             use --estimator ls, or drop those options for the {} estimator",
-            options.estimator.name()
-        )));
+    if options.streaming() && options.estimator == Estimator::Robust {
+        return Err(Error::Invalid(
+            "the robust estimator fits every pixel with the exact kernel: drop --precision f32 \
+             and --tile-tolerance, or use --estimator adaptive (the streaming least squares, \
+             the robust fit only where the residual asks for it)"
+                .into(),
+        ));
     }
     if options.streaming() && options.method == Method::Svd {
         return Err(Error::Invalid(
