@@ -14,14 +14,16 @@ use psscan::progress::Silent;
 use psscan::rig::Rig;
 use psscan::solve::{self, LightSource, SolveInput};
 
-/// Minor page faults of this process so far.
-fn page_faults() -> i64 {
+/// This process's minor page faults and CPU seconds (user + system, all threads) so far.
+fn usage() -> (i64, f64) {
     // SAFETY: getrusage writes into the struct it is given.
-    unsafe {
+    let u = unsafe {
         let mut usage: libc::rusage = std::mem::zeroed();
         libc::getrusage(libc::RUSAGE_SELF, &mut usage);
-        usage.ru_minflt
-    }
+        usage
+    };
+    let secs = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    (u.ru_minflt, secs(u.ru_utime) + secs(u.ru_stime))
 }
 
 /// `perf record --delay=-1 --control=fifo:PATH` support: with `PSSCAN_PERF_CTL=PATH` set,
@@ -34,10 +36,15 @@ fn perf_control(command: &str) {
     }
 }
 
-fn timed(f: &dyn Fn()) -> f64 {
+/// Wall seconds, CPU seconds and page faults of `f`. On a loaded machine the CPU time is the
+/// steadier figure: it leaves out the time the threads waited for a core.
+fn timed(f: &dyn Fn()) -> (f64, f64, i64) {
+    let (faults, cpu) = usage();
     let start = Instant::now();
     f();
-    start.elapsed().as_secs_f64()
+    let wall = start.elapsed().as_secs_f64();
+    let (faults_after, cpu_after) = usage();
+    (wall, cpu_after - cpu, faults_after - faults)
 }
 
 fn min_median(mut v: Vec<f64>) -> (f64, f64) {
@@ -79,26 +86,27 @@ fn main() {
         if variant.options.method == solve::Method::Svd || !variant.name.contains(&only) {
             continue;
         }
-        let (mut times, mut floors, mut ratios) = (vec![], vec![], vec![]);
+        let (mut times, mut floors, mut ratios, mut cpu_ratios) = (vec![], vec![], vec![], vec![]);
         let mut faults = 0;
         for _ in 0..repeats {
-            let f = timed(&floor);
-            let before = page_faults();
+            let (f, f_cpu, _) = timed(&floor);
             perf_control("enable");
-            let t = timed(&|| {
+            let (t, t_cpu, t_faults) = timed(&|| {
                 std::hint::black_box(solve::solve(&input, &variant.options, &Silent).unwrap());
             });
             perf_control("disable");
-            faults = page_faults() - before;
+            faults = t_faults;
             times.push(t);
             floors.push(f);
             ratios.push(t / f);
+            cpu_ratios.push(t_cpu / f_cpu);
         }
         let (t, _) = min_median(times);
         let (f, _) = min_median(floors);
         let (r_min, r_med) = min_median(ratios);
+        let (c_min, c_med) = min_median(cpu_ratios);
         println!(
-            "| {} | {t:.4} | {f:.4} | {r_min:.2} | {r_med:.2} | {faults} |",
+            "| {} | {t:.4} | {f:.4} | {r_min:.2} | {r_med:.2} | {c_min:.2} | {c_med:.2} | {faults} |",
             variant.name
         );
     }

@@ -23,7 +23,7 @@ use rayon::prelude::*;
 use super::kernel::{Kernel, RowOut, Scratch};
 use super::lights::Illumination;
 use super::tiles::{self, exact_coefficients, TileGrid};
-use super::{PixelStatus, SolveInput, SolveOptions, SolveResult, LUMINANCE_WEIGHTS};
+use super::{PixelFit, PixelStatus, SolveInput, SolveOptions, SolveResult, LUMINANCE_WEIGHTS};
 use crate::plane::Frames;
 use crate::progress::Progress;
 
@@ -153,6 +153,9 @@ pub struct Context<'a> {
     dark_threshold: f64,
     max_condition: f64,
     normal_only: bool,
+    /// The outputs hold a previous solve's values (`solve_reusing`): fast-path pixels must
+    /// also write their predicted error (0) and fit, which fresh zeroed outputs already hold.
+    pub reused_outputs: bool,
 }
 
 impl<'a> Context<'a> {
@@ -180,6 +183,7 @@ impl<'a> Context<'a> {
                     .sqrt(),
             max_condition: options.max_condition,
             normal_only: options.normal_only,
+            reused_outputs: false,
         }
     }
 }
@@ -339,6 +343,10 @@ fn solve_row<T: Real, const FMA: bool>(
             let m = &mask.data[y * w + x..y * w + x + LANES];
             inside.copy_from_slice(m);
             if !inside.iter().any(|&b| b) {
+                // The outputs are not prefilled (`SolveResult::zeroed`).
+                for l in 0..LANES {
+                    reset_pixel(row, x + l, PixelStatus::OutsideMask);
+                }
                 continue;
             }
         }
@@ -357,6 +365,12 @@ fn solve_row<T: Real, const FMA: bool>(
             None => Source::Table(&scratch.coef),
         };
         let ok = solve_chunk::<T, FMA>(ctx, y * w + x, &source, valid, row, x);
+        // Fast-path pixels have no predicted error: the plane is zero where this kernel
+        // wrote it first, but the last chunk overlaps pixels the exact kernel may have solved.
+        if ctx.reused_outputs || x + LANES != x0 {
+            row.predicted[x..x + LANES].fill(0.0);
+            row.fit[x..x + LANES].fill(PixelFit::LeastSquares);
+        }
         for l in 0..LANES {
             if inside[l] && !ok[l] {
                 exact_pixel(ctx, y, x + l, row, scratch);
@@ -668,7 +682,6 @@ fn solve_chunk<T: Real, const FMA: bool>(
     }
     store(&mut row.residual[x..x + LANES], &residual);
     store(&mut row.condition[x..x + LANES], &condition);
-    row.predicted[x..x + LANES].fill(0.0);
     for (o, u) in row.lights[x..x + LANES].iter_mut().zip(&used.0) {
         *o = u.to32() as u8;
     }
@@ -737,6 +750,7 @@ fn reset_pixel(row: &mut RowOut, x: usize, status: PixelStatus) {
     row.predicted[x] = 0.0;
     row.condition[x] = 0.0;
     row.lights[x] = 0;
+    row.fit[x] = PixelFit::LeastSquares;
     row.status[x] = status;
 }
 
