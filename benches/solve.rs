@@ -7,6 +7,7 @@
 //! gives the minimum and median of these paired ratios, and the page faults of one solve.
 //! `psscan bench` is the full run-time-against-error benchmark.
 
+use std::cell::RefCell;
 use std::time::Instant;
 
 use psscan::bench::{self, read_all, render_scene, SceneKind};
@@ -72,9 +73,10 @@ fn main() {
         rayon::current_num_threads()
     );
     println!(
-        "| kernel | s (min) | floor s (min) | x floor (min) | x floor (median) | page faults |"
+        "| kernel | s (min) | floor s (min) | x floor (min) | x floor (median) \
+         | CPU x floor (min) | CPU x floor (median) | page faults |"
     );
-    println!("|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     let input = SolveInput {
         frames: &frames,
         lights: LightSource::Rig(&rig),
@@ -86,28 +88,45 @@ fn main() {
         if variant.options.method == solve::Method::Svd || !variant.name.contains(&only) {
             continue;
         }
-        let (mut times, mut floors, mut ratios, mut cpu_ratios) = (vec![], vec![], vec![], vec![]);
-        let mut faults = 0;
-        for _ in 0..repeats {
-            let (f, f_cpu, _) = timed(&floor);
-            perf_control("enable");
-            let (t, t_cpu, t_faults) = timed(&|| {
-                std::hint::black_box(solve::solve(&input, &variant.options, &Silent).unwrap());
-            });
-            perf_control("disable");
-            faults = t_faults;
-            times.push(t);
-            floors.push(f);
-            ratios.push(t / f);
-            cpu_ratios.push(t_cpu / f_cpu);
+        for reuse in [false, true] {
+            // Reused outputs: each solve writes into the previous one's planes (the first
+            // run allocates them and is not counted).
+            let previous = RefCell::new(None);
+            if reuse {
+                *previous.borrow_mut() =
+                    Some(solve::solve(&input, &variant.options, &Silent).unwrap());
+            }
+            let (mut times, mut floors, mut ratios, mut cpu_ratios) =
+                (vec![], vec![], vec![], vec![]);
+            let mut faults = 0;
+            for _ in 0..repeats {
+                let (f, f_cpu, _) = timed(&floor);
+                perf_control("enable");
+                let (t, t_cpu, t_faults) = timed(&|| {
+                    let old = previous.borrow_mut().take();
+                    let r = solve::solve_reusing(&input, &variant.options, &Silent, old).unwrap();
+                    *previous.borrow_mut() = reuse.then_some(r);
+                });
+                perf_control("disable");
+                faults = t_faults;
+                times.push(t);
+                floors.push(f);
+                ratios.push(t / f);
+                cpu_ratios.push(t_cpu / f_cpu);
+            }
+            let (t, _) = min_median(times);
+            let (f, _) = min_median(floors);
+            let (r_min, r_med) = min_median(ratios);
+            let (c_min, c_med) = min_median(cpu_ratios);
+            let name = if reuse {
+                format!("{} (reused outputs)", variant.name)
+            } else {
+                variant.name.clone()
+            };
+            println!(
+                "| {name} | {t:.4} | {f:.4} | {r_min:.2} | {r_med:.2} | {c_min:.2} | {c_med:.2} \
+                 | {faults} |"
+            );
         }
-        let (t, _) = min_median(times);
-        let (f, _) = min_median(floors);
-        let (r_min, r_med) = min_median(ratios);
-        let (c_min, c_med) = min_median(cpu_ratios);
-        println!(
-            "| {} | {t:.4} | {f:.4} | {r_min:.2} | {r_med:.2} | {c_min:.2} | {c_med:.2} | {faults} |",
-            variant.name
-        );
     }
 }

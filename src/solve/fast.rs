@@ -418,19 +418,22 @@ fn prepare_row<T: Real>(grid: &TileGrid, y: usize, h: usize, w: usize, s: &mut R
     let (jy, ty) = grid.locate(y, h, grid.nodes_y);
     let jy1 = (jy + 1).min(grid.nodes_y - 1);
     let stride = grid.stride;
-    for jx in 0..grid.nodes_x {
+    // Iterators, not indices: the loops vectorise (indexed, the second ran scalar).
+    for (jx, left) in s.row_left.chunks_exact_mut(stride).enumerate() {
         let (a, c) = (grid.node(jx, jy), grid.node(jx, jy1));
-        for i in 0..stride {
-            s.row_left[jx * stride + i] = T::of(a[i] + (c[i] - a[i]) * ty);
+        for ((o, &a), &c) in left.iter_mut().zip(a).zip(c) {
+            *o = T::of(a + (c - a) * ty);
         }
     }
-    for jx in 0..grid.nodes_x {
+    let left = &s.row_left;
+    for (jx, slope) in s.row_slope.chunks_exact_mut(stride).enumerate() {
         let jx1 = (jx + 1).min(grid.nodes_x - 1);
         let span = grid.node_pos(jx1, w) as f64 - grid.node_pos(jx, w) as f64;
-        let inv = if span > 0.0 { 1.0 / span } else { 0.0 };
-        for i in 0..stride {
-            let d = s.row_left[jx1 * stride + i] - s.row_left[jx * stride + i];
-            s.row_slope[jx * stride + i] = d * T::of(inv);
+        let inv = T::of(if span > 0.0 { 1.0 / span } else { 0.0 });
+        let this = &left[jx * stride..(jx + 1) * stride];
+        let next = &left[jx1 * stride..(jx1 + 1) * stride];
+        for ((o, &a), &b) in slope.iter_mut().zip(this).zip(next) {
+            *o = (b - a) * inv;
         }
     }
 }
@@ -587,13 +590,15 @@ fn solve_chunk<T: Real, const FMA: bool>(
         }
         for l in 0..LANES {
             dropped[l] += one[l];
-            let (mx, my, mz) = (one[l] * lx[l], one[l] * ly[l], one[l] * lz[l]);
-            a[0][l] = madd::<T, FMA>(-mx, lx[l], a[0][l]);
-            a[1][l] = madd::<T, FMA>(-mx, ly[l], a[1][l]);
-            a[2][l] = madd::<T, FMA>(-mx, lz[l], a[2][l]);
-            a[3][l] = madd::<T, FMA>(-my, ly[l], a[3][l]);
-            a[4][l] = madd::<T, FMA>(-my, lz[l], a[4][l]);
-            a[5][l] = madd::<T, FMA>(-mz, lz[l], a[5][l]);
+            // A select, not a multiply by 0 or 1: AVX-512 does it as a masked FMA.
+            let drop = one[l] != zero;
+            let (x, y, z) = (lx[l], ly[l], lz[l]);
+            a[0][l] = subtract_if::<T, FMA>(drop, a[0][l], x, x);
+            a[1][l] = subtract_if::<T, FMA>(drop, a[1][l], x, y);
+            a[2][l] = subtract_if::<T, FMA>(drop, a[2][l], x, z);
+            a[3][l] = subtract_if::<T, FMA>(drop, a[3][l], y, y);
+            a[4][l] = subtract_if::<T, FMA>(drop, a[4][l], y, z);
+            a[5][l] = subtract_if::<T, FMA>(drop, a[5][l], z, z);
         }
         if ctx.normal_only {
             for l in 0..LANES {
@@ -668,13 +673,15 @@ fn solve_chunk<T: Real, const FMA: bool>(
     };
     let mut ok = valid;
     let (min_len, cond_max) = (T::of(1e-12), T::of(ctx.max_condition));
+    let sum = albedo[0] + albedo[1] + albedo[2] + residual;
+    // `&`, not `&&`: branch-free, so the lanes are tested in vectors.
     for l in 0..LANES {
-        ok[l] &= used.0[l] >= T::of(3.0)
-            && det.0[l] > zero
-            && condition.0[l] <= cond_max
-            && length.0[l] > min_len
-            && length.0[l] <= max
-            && (albedo[0].0[l] + albedo[1].0[l] + albedo[2].0[l] + residual.0[l]).is_finite();
+        ok[l] &= (used.0[l] >= T::of(3.0))
+            & (det.0[l] > zero)
+            & (condition.0[l] <= cond_max)
+            & (length.0[l] > min_len)
+            & (length.0[l] <= max)
+            & sum.0[l].is_finite();
     }
     for d in 0..3 {
         store(&mut row.normal[d][x..x + LANES], &unit[d]);
@@ -687,6 +694,16 @@ fn solve_chunk<T: Real, const FMA: bool>(
     }
     row.status[x..x + LANES].fill(PixelStatus::Solved);
     ok
+}
+
+/// `a - p q` where `drop`, else `a`.
+#[inline(always)]
+fn subtract_if<T: Real, const FMA: bool>(drop: bool, a: T, p: T, q: T) -> T {
+    if drop {
+        madd::<T, FMA>(-p, q, a)
+    } else {
+        a
+    }
 }
 
 /// `LANES` values of plane `p` from pixel index `i0`.
