@@ -94,9 +94,8 @@ impl<T: Real> V<T> {
     fn max(self, floor: T) -> Self {
         let mut out = self.0;
         for v in &mut out {
-            if !(*v > floor) {
-                *v = floor;
-            }
+            // NaN becomes `floor` too.
+            *v = if *v > floor { *v } else { floor };
         }
         V(out)
     }
@@ -120,8 +119,8 @@ macro_rules! lane_op {
             #[inline(always)]
             fn $method(self, o: T) -> V<T> {
                 let mut out = self.0;
-                for v in &mut out {
-                    *v = *v $op o;
+                for l in 0..LANES {
+                    out[l] = self.0[l] $op o;
                 }
                 V(out)
             }
