@@ -22,7 +22,7 @@ use crate::maps::{self, Report};
 use crate::pipeline::{self, SolveJob};
 use crate::progress::Progress;
 use crate::raw::{DecodeInfo, Resolution};
-use crate::solve::{self, LightSource, NoiseModel, SolveInput};
+use crate::solve::{self, LightSource, NoiseModel, SolveInput, SolveResult};
 
 /// What kind of set a folder holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -72,9 +72,21 @@ pub fn solve_set(
     job: &SolveJob,
     progress: &dyn Progress,
 ) -> Result<Report> {
+    solve_set_reusing(dir, out, job, progress, &mut None)
+}
+
+/// [`solve_set`] solving into, and leaving its result in, `buffers` (as
+/// `pipeline::solve_capture_set_reusing`): what each batch worker does from set to set.
+pub fn solve_set_reusing(
+    dir: &Path,
+    out: &Path,
+    job: &SolveJob,
+    progress: &dyn Progress,
+    buffers: &mut Option<SolveResult>,
+) -> Result<Report> {
     match set_kind(dir)? {
-        SetKind::Capture => pipeline::solve_capture_set(dir, out, job, progress),
-        SetKind::Diligent => solve_diligent_set(dir, out, job, progress),
+        SetKind::Capture => pipeline::solve_capture_set_reusing(dir, out, job, progress, buffers),
+        SetKind::Diligent => solve_diligent_into(dir, out, job, progress, buffers),
     }
 }
 
@@ -90,6 +102,16 @@ pub fn solve_diligent_set(
     out: &Path,
     job: &SolveJob,
     progress: &dyn Progress,
+) -> Result<Report> {
+    solve_diligent_into(dir, out, job, progress, &mut None)
+}
+
+fn solve_diligent_into(
+    dir: &Path,
+    out: &Path,
+    job: &SolveJob,
+    progress: &dyn Progress,
+    buffers: &mut Option<SolveResult>,
 ) -> Result<Report> {
     let total = Instant::now();
     if !job.region.is_full() {
@@ -129,7 +151,7 @@ pub fn solve_diligent_set(
         exposure: 1.0,
         mask: mask.as_ref(),
     };
-    let result = solve::solve(&input, &job.options, progress)?;
+    let result = solve::solve_reusing(&input, &job.options, progress, buffers.take())?;
     timings.insert("solve".into(), start.elapsed().as_secs_f64());
 
     let start = Instant::now();
@@ -168,6 +190,7 @@ pub fn solve_diligent_set(
     report.timings_s = timings;
     report.write(&stage.path().join(maps::REPORT_FILE))?;
     stage.commit(job.force, maps::REPORT_FILE)?;
+    *buffers = Some(result);
     Ok(report)
 }
 
@@ -336,25 +359,31 @@ pub fn solve_sets(
     let workers = options.parallel_sets.clamp(1, planned.len().max(1));
     std::thread::scope(|scope| {
         for _ in 0..workers {
-            scope.spawn(|| loop {
-                let n = next.fetch_add(1, Ordering::Relaxed);
-                let Some((i, dir, kind, units)) = planned.get(n) else {
-                    break;
-                };
-                let budget = Budget::new(progress, *units);
-                let outcome = match solve_set(&sets[*i], dir, job, &budget) {
-                    Ok(report) => SetOutcome {
-                        set: sets[*i].clone(),
-                        out: dir.clone(),
-                        kind: Some(*kind),
-                        status: "solved",
-                        error: None,
-                        summary: Some(SetSummary::of(&report, dir)),
-                    },
-                    Err(e) => failed(&sets[*i], dir.clone(), Some(*kind), e.to_string()),
-                };
-                budget.finish();
-                results.lock().unwrap().push((*i, outcome));
+            scope.spawn(|| {
+                // Each worker solves its sets into the previous one's outputs (same size: no
+                // fresh pages to fault in and zero, the largest cost after reading the input).
+                let mut buffers = None;
+                loop {
+                    let n = next.fetch_add(1, Ordering::Relaxed);
+                    let Some((i, dir, kind, units)) = planned.get(n) else {
+                        break;
+                    };
+                    let budget = Budget::new(progress, *units);
+                    let outcome =
+                        match solve_set_reusing(&sets[*i], dir, job, &budget, &mut buffers) {
+                            Ok(report) => SetOutcome {
+                                set: sets[*i].clone(),
+                                out: dir.clone(),
+                                kind: Some(*kind),
+                                status: "solved",
+                                error: None,
+                                summary: Some(SetSummary::of(&report, dir)),
+                            },
+                            Err(e) => failed(&sets[*i], dir.clone(), Some(*kind), e.to_string()),
+                        };
+                    budget.finish();
+                    results.lock().unwrap().push((*i, outcome));
+                }
             });
         }
     });

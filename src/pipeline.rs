@@ -591,6 +591,19 @@ pub fn solve_capture_set(
     job: &SolveJob,
     progress: &dyn Progress,
 ) -> Result<Report> {
+    solve_capture_set_reusing(dir, out, job, progress, &mut None)
+}
+
+/// [`solve_capture_set`], solving into `buffers` (a previous set's result, when it has the
+/// same size) and leaving this set's result there: a batch of same-size sets then pays for
+/// fresh output memory once, not per set (see `solve::solve_reusing`).
+pub fn solve_capture_set_reusing(
+    dir: &Path,
+    out: &Path,
+    job: &SolveJob,
+    progress: &dyn Progress,
+    buffers: &mut Option<solve::SolveResult>,
+) -> Result<Report> {
     let total = Instant::now();
     let stage = StagedDir::create(out, job.force, maps::REPORT_FILE)?;
     let mut timings = BTreeMap::new();
@@ -626,7 +639,7 @@ pub fn solve_capture_set(
         exposure: set.manifest.image.exposure,
         mask: mask.as_ref(),
     };
-    let result = solve::solve(&input, &job.options, progress)?;
+    let result = solve::solve_reusing(&input, &job.options, progress, buffers.take())?;
     timings.insert("solve".into(), start.elapsed().as_secs_f64());
     drop(frames);
 
@@ -659,6 +672,7 @@ pub fn solve_capture_set(
     report.timings_s = timings;
     report.write(&stage.path().join(maps::REPORT_FILE))?;
     stage.commit(job.force, maps::REPORT_FILE)?;
+    *buffers = Some(result);
     Ok(report)
 }
 
