@@ -247,7 +247,14 @@ pub fn rig_with_camera(
     pose: &super::table::TablePose,
 ) -> Result<Rig> {
     let i = &camera.intrinsics;
-    let window = image_window(rig, (i.width, i.height), None)?;
+    let window = image_window(rig, (i.width, i.height), None).map_err(|_| {
+        Error::Invalid(format!(
+            "the camera step's photographs are {}x{}, which is neither rig \"{}\"'s {}x{} \
+             sensor nor a binned copy of it: calibrate the camera on full-sensor (or evenly \
+             binned) photographs",
+            i.width, i.height, rig.name, rig.camera.width, rig.camera.height
+        ))
+    })?;
     let sensor = i.to_sensor(
         window,
         (rig.camera.width as usize, rig.camera.height as usize),
