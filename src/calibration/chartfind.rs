@@ -189,3 +189,26 @@ pub fn find(mosaics: &[Mosaic], chart: &ChartDescription) -> Result<ChartRect> {
         y1: (2 * (g.y0 + rows * g.ph)) as f64,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_even_field_holds_no_chart() {
+        let even = Mosaic {
+            width: 256,
+            height: 128,
+            pattern: [[0, 1], [1, 2]],
+            black: [[512.0; 2]; 2],
+            white: 16383.0,
+            samples: (0..256 * 128)
+                .map(|i| 3000 + (i * 7919 % 13) as u16)
+                .collect(),
+        };
+        let err = find(&[even], &ChartDescription::munsell_12())
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("--rect"), "{err}");
+    }
+}
