@@ -48,3 +48,105 @@ fn white_balance_and_linearity_from_the_cfa_values() {
     assert!(clipped[6..].iter().all(|c| c.contains(&11)));
     assert!(report.lights.iter().all(|l| l.linearity.r_squared > 0.9999));
 }
+
+mod wizard_step {
+    use psscan::calibration::camera::Board;
+    use psscan::calibration::graychart::ChartDescription;
+    use psscan::calibration::wizard::{Step, TargetSource, Wizard};
+    use psscan::error::{Error, Result};
+    use psscan::plane::{Frames, GrayImage, SensorWindow};
+    use psscan::progress::{Progress, Silent};
+    use psscan::raw::Mosaic;
+    use psscan::rig::Rig;
+    use psscan::synth::targets;
+
+    /// The chart on the table of `rig` (here the hand rig is the truth, so the shading model
+    /// is exact), at `exposure`, shifted by `shift_m` along x from where the wizard said.
+    struct Chart {
+        rig: Rig,
+        exposure: f64,
+        shift_m: f64,
+        forgotten: usize,
+    }
+
+    impl TargetSource for Chart {
+        fn chessboard_view(&mut self, _: usize) -> Result<GrayImage> {
+            Err(Error::Invalid("not in this test".into()))
+        }
+        fn table_view(&mut self) -> Result<GrayImage> {
+            Err(Error::Invalid("not in this test".into()))
+        }
+        fn gray_chart(
+            &mut self,
+            chart: &ChartDescription,
+            world: [f64; 4],
+            _: &dyn Progress,
+        ) -> Result<(Vec<Mosaic>, SensorWindow)> {
+            let [x0, x1, y0, y1] = world;
+            let placed = [x0 + self.shift_m, x1 + self.shift_m, y0, y1];
+            let (w, h) = targets::binned_size(&self.rig, 4.0);
+            let (mosaics, _) = targets::gray_chart_mosaics(
+                &self.rig,
+                chart,
+                placed,
+                (w, h, 4.0),
+                self.exposure,
+                3,
+            );
+            Ok((mosaics, SensorWindow::centred(4928, 3264, w, h, 4.0)))
+        }
+        fn white_sheet(&mut self, _: &str, _: usize, _: &dyn Progress) -> Result<Frames> {
+            Err(Error::Invalid("not in this test".into()))
+        }
+        fn view_window(&self) -> SensorWindow {
+            SensorWindow::centred(4928, 3264, 1232, 816, 4.0)
+        }
+        fn forget_gray_chart(&mut self) -> Result<()> {
+            self.forgotten += 1;
+            Ok(())
+        }
+    }
+
+    fn verdict(
+        exposure: f64,
+        shift_m: f64,
+    ) -> (psscan::calibration::wizard::ChartVerdict, Step, usize) {
+        let tmp = tempfile::tempdir().unwrap();
+        let rig = Rig::default_rig();
+        let board = Board::parse("9x6", 15.0).unwrap();
+        let (mut wiz, _) = Wizard::open(tmp.path(), rig.clone(), "t", board).unwrap();
+        wiz.state.step = Step::GrayChart;
+        let mut source = Chart {
+            rig,
+            exposure,
+            shift_m,
+            forgotten: 0,
+        };
+        let v = wiz.take_gray_chart(&mut source, &Silent).unwrap();
+        (v, wiz.state.step, source.forgotten)
+    }
+
+    #[test]
+    fn the_wizard_accepts_a_good_chart_and_says_why_it_rejects_a_bad_one() {
+        let (good, step, forgotten) = verdict(1.0, 0.0);
+        for (k, l) in good.report.lights.iter().enumerate() {
+            println!(
+                "good chart, LED {k}: worst patch {} at {:+.3} % (allowed {:.3} %)",
+                l.linearity.worst_patch,
+                100.0 * l.linearity.worst_deviation,
+                100.0 * good.linearity_tolerance[k]
+            );
+        }
+        assert!(good.accepted, "{:?}", good.reasons);
+        assert_eq!((step, forgotten), (Step::WhiteSheet, 0));
+        // Over-exposed: the bright patches clip under the overhead LEDs.
+        let (bright, step, forgotten) = verdict(1.8, 0.0);
+        println!("over-exposed: {:?}", bright.reasons);
+        assert!(!bright.accepted && bright.reasons.iter().any(|r| r.contains("clipped")));
+        assert_eq!((step, forgotten), (Step::GrayChart, 1));
+        // Laid half a patch (10 mm) off: the samples straddle two patches, the fit bends.
+        let (shifted, _, _) = verdict(1.0, 0.01);
+        println!("10 mm off: {:?}", shifted.reasons);
+        assert!(!shifted.accepted && shifted.reasons.iter().any(|r| r.contains("linear fit")));
+    }
+}

@@ -50,6 +50,9 @@ pub struct BenchOptions {
     pub numpy_script: PathBuf,
     /// Scratch folder for the NumPy peer's input.
     pub scratch: PathBuf,
+    /// Only what the speed targets need: the Lambertian scene, the floor, the
+    /// [`Variant::speed`] variants, the NumPy peer and peak memory.
+    pub speed_only: bool,
 }
 
 /// The standard scenes.
@@ -96,7 +99,26 @@ pub struct Variant {
     pub options: SolveOptions,
     /// Also run above [`LARGE_MP`] (the slow per-pixel variants are reported at 1 MP only).
     pub large: bool,
+    /// Run only on these scenes (empty: every scene).
+    pub scenes: &'static [SceneKind],
+    /// Timed once whatever the repeats (the sheen fit takes ~10 us per pixel).
+    pub single_run: bool,
+    /// Each timed solve writes into the previous solve's outputs (`solve_reusing`, as a batch
+    /// of same-size captures can): no fresh output pages to fault in and zero. One untimed
+    /// solve first allocates them.
+    pub reuse_outputs: bool,
+    /// Run by `--speed-only`.
+    pub speed: bool,
 }
+
+/// The scenes the sheen-fit variants run on (on the others the sheen model has nothing to fit).
+const SHEEN_SCENES: &[SceneKind] = &[SceneKind::Sheen, SceneKind::ShadowsSheen];
+
+/// Suffix of the variants that fit the material's sheen lobe (`--sheen-fit`).
+pub const SHEEN_FIT: &str = " + sheen fit";
+
+/// The adaptive estimator on the streaming kernel: what its cost is compared with [`FAST_LS`].
+pub const FAST_ADAPTIVE: &str = "adaptive fast f32 tiled";
 
 /// The variants every scene is solved with.
 pub fn variants() -> Vec<Variant> {
@@ -108,10 +130,36 @@ pub fn variants() -> Vec<Variant> {
     let v = |name: &str, options: SolveOptions| Variant {
         name: name.into(),
         large: options.method != Method::Svd
-            && options.estimator == Estimator::LeastSquares
+            && options.estimator != Estimator::Robust
             && (options.tile_tolerance_deg.is_some() || !options.streaming())
             && !options.predict_error,
+        reuse_outputs: false,
+        speed: name.starts_with(FAST_LS),
         options,
+        scenes: &[],
+        single_run: false,
+    };
+    // The material's lobe, as the renderer's (`synth::Sheen::default`).
+    let sheen = {
+        let s = Sheen::default();
+        solve::SheenModel {
+            f0: s.f0,
+            alpha: s.alpha,
+            amplitude: s.amplitude,
+        }
+    };
+    let with_sheen = |variant: Variant| {
+        let mut options = variant.options;
+        options.robust.sheen = Some(sheen);
+        Variant {
+            name: format!("{}{SHEEN_FIT}", variant.name),
+            options,
+            large: false,
+            scenes: SHEEN_SCENES,
+            single_run: true,
+            reuse_outputs: false,
+            speed: false,
+        }
     };
     let streaming = |precision, tiles: Option<f64>, normal_only| SolveOptions {
         precision,
@@ -121,8 +169,9 @@ pub fn variants() -> Vec<Variant> {
         ..base.clone()
     };
     let tiles = Some(TILE_TOLERANCE_DEG);
-    // The robust estimators (exact kernel, f64), with the predicted error they rely on.
-    let estimators = Estimator::ALL
+    // The robust estimators (exact kernel, f64), with the predicted error they rely on, and
+    // the adaptive one on the streaming kernel.
+    let mut estimators: Vec<Variant> = Estimator::ALL
         .into_iter()
         .filter(|&e| e != Estimator::LeastSquares)
         .map(|estimator| {
@@ -133,7 +182,16 @@ pub fn variants() -> Vec<Variant> {
                     ..SolveOptions::default()
                 },
             )
-        });
+        })
+        .collect();
+    estimators.push(v(
+        FAST_ADAPTIVE,
+        SolveOptions {
+            estimator: Estimator::Adaptive,
+            ..streaming(Precision::F32, tiles, false)
+        },
+    ));
+    let sheen_fits: Vec<Variant> = estimators.iter().cloned().map(with_sheen).collect();
     let mut all = vec![
         v("ls f64 per-pixel (exact kernel)", base.clone()),
         v(
@@ -160,18 +218,26 @@ pub fn variants() -> Vec<Variant> {
         v("fast f64 per-pixel", streaming(Precision::F64, None, false)),
         v("fast f64 tiled", streaming(Precision::F64, tiles, false)),
         v("fast f32 per-pixel", streaming(Precision::F32, None, false)),
-        v("fast f32 tiled", streaming(Precision::F32, tiles, false)),
+        v(FAST_LS, streaming(Precision::F32, tiles, false)),
+        Variant {
+            reuse_outputs: true,
+            ..v(FAST_LS_REUSED, streaming(Precision::F32, tiles, false))
+        },
         v(
             "fast f32 tiled normal-only",
             streaming(Precision::F32, tiles, true),
         ),
     ];
     all.extend(estimators);
+    all.extend(sheen_fits);
     all
 }
 
-/// The name of the variant the speed targets are measured on.
+/// The name of the variant the speed targets are measured on: one solve as `psscan` runs
+/// it, allocating its outputs.
 pub const FAST_LS: &str = "fast f32 tiled";
+/// The same solve writing into a previous solve's outputs.
+pub const FAST_LS_REUSED: &str = "fast f32 tiled (reused outputs)";
 /// The exact least-squares kernel every variant's deviation is measured against.
 pub const EXACT_LS: &str = "ls f64 per-pixel (exact kernel)";
 
@@ -194,6 +260,9 @@ pub struct Row {
     pub max_dev_from_exact_deg: Option<f64>,
     pub mean_dev_from_exact_deg: Option<f64>,
     pub solved_fraction: f64,
+    /// Pixels the robust fit ran on, as a fraction of all (0 for least squares, the floor and
+    /// the peers).
+    pub escalated_fraction: f64,
 }
 
 /// Peak memory of one solve.
@@ -280,7 +349,12 @@ pub fn render_window<'r>(
     Ok((scene, frames))
 }
 
-fn solve_once(rig: &Rig, frames: &Frames, options: &SolveOptions) -> Result<(SolveResult, f64)> {
+fn solve_once(
+    rig: &Rig,
+    frames: &Frames,
+    options: &SolveOptions,
+    previous: Option<SolveResult>,
+) -> Result<(SolveResult, f64)> {
     let input = SolveInput {
         frames,
         lights: LightSource::Rig(rig),
@@ -289,7 +363,7 @@ fn solve_once(rig: &Rig, frames: &Frames, options: &SolveOptions) -> Result<(Sol
         mask: None,
     };
     let start = Instant::now();
-    let result = solve::solve(&input, options, &Silent)?;
+    let result = solve::solve_reusing(&input, options, &Silent, previous)?;
     Ok((result, start.elapsed().as_secs_f64()))
 }
 
@@ -328,7 +402,7 @@ pub fn run(options: &BenchOptions, progress: &dyn Progress) -> Result<BenchResul
     for &mp in &options.sizes_mp {
         // Large scenes are for the speed targets: the Lambertian scene only (rendering and
         // solving every scene at 16 MP would take most of an hour on two cores).
-        let kinds: &[SceneKind] = if mp > LARGE_MP {
+        let kinds: &[SceneKind] = if mp > LARGE_MP || options.speed_only {
             &[SceneKind::Lambertian]
         } else {
             &SceneKind::ALL
@@ -349,6 +423,7 @@ pub fn run(options: &BenchOptions, progress: &dyn Progress) -> Result<BenchResul
                 max_dev_from_exact_deg: None,
                 mean_dev_from_exact_deg: None,
                 solved_fraction: 0.0,
+                escalated_fraction: 0.0,
             };
             let floor_s = median(
                 (0..options.repeats.max(3))
@@ -364,21 +439,27 @@ pub fn run(options: &BenchOptions, progress: &dyn Progress) -> Result<BenchResul
             let mut scene_rows = vec![floor_row];
             let mut exact: Option<SolveResult> = None;
             for variant in &variants {
-                if mp > LARGE_MP && !variant.large {
+                if (mp > LARGE_MP && !variant.large) || (options.speed_only && !variant.speed) {
+                    continue;
+                }
+                if !variant.scenes.is_empty() && !variant.scenes.contains(&kind) {
                     continue;
                 }
                 let slow =
                     !variant.options.streaming() || variant.options.tile_tolerance_deg.is_none();
-                let runs = if slow && mp > LARGE_MP {
+                let runs = if variant.single_run || (slow && mp > LARGE_MP) {
                     1
                 } else {
                     options.repeats
                 };
                 let mut times = Vec::new();
-                let mut result = None;
+                let mut result = match variant.reuse_outputs {
+                    true => Some(solve_once(&rig, &frames, &variant.options, None)?.0),
+                    false => None,
+                };
                 for _ in 0..runs {
-                    drop(result.take());
-                    let (r, t) = solve_once(&rig, &frames, &variant.options)?;
+                    let previous = result.take().filter(|_| variant.reuse_outputs);
+                    let (r, t) = solve_once(&rig, &frames, &variant.options, previous)?;
                     times.push(t);
                     result = Some(r);
                 }
@@ -452,6 +533,7 @@ fn fill_errors(row: &mut Row, result: &SolveResult, scene: &Scene, floor_s: f64)
     row.mean_error_deg = cmp.normal_error_deg.mean;
     row.p95_error_deg = cmp.normal_error_deg.p95;
     row.solved_fraction = cmp.pixels as f64 / result.status.len().max(1) as f64;
+    row.escalated_fraction = result.escalated as f64 / result.status.len().max(1) as f64;
 }
 
 /// Peak heap of the fast least-squares solve against its decoded input.
@@ -464,7 +546,7 @@ fn measure_memory(rig: &Rig, frames: &Frames, kind: SceneKind, mp: f64) -> Resul
     let input = input_bytes(frames);
     let before = crate::alloc::current();
     crate::alloc::reset_peak();
-    let (result, _) = solve_once(rig, frames, &options)?;
+    let (result, _) = solve_once(rig, frames, &options, None)?;
     let peak = crate::alloc::peak();
     drop(result);
     // The solve's own peak: its input plus what it added on top of everything live before.

@@ -2,7 +2,7 @@
 //! still needs, accepting or rejecting each photograph with a reason, and a state file in the
 //! bundle folder so an interrupted session resumes where it stopped. Photographs come from a
 //! [`TargetSource`]: the simulated rig (synthetic targets rendered through an as-built rig),
-//! or the capture module on real hardware.
+//! or the capture module (LED controller and camera, real or simulated; see `capture`).
 
 use std::path::{Path, PathBuf};
 
@@ -10,12 +10,14 @@ use serde::{Deserialize, Serialize};
 
 use super::bundle::{self, Calibration};
 use super::camera::{self, Board, CameraOptions, DetectedView};
+use super::graychart::{self, ChartDescription, ChartRect, ChartReport, Shading};
 use super::whitesheet::{self, FLATNESS_TOLERANCE_DEG};
 use super::{lights, table};
 use crate::error::{Error, Result};
 use crate::fsutil::write_atomic;
 use crate::plane::{Frames, GrayImage, SensorWindow};
 use crate::progress::Progress;
+use crate::raw::Mosaic;
 use crate::rig::Rig;
 use crate::solve::NoiseModel;
 
@@ -30,10 +32,30 @@ pub trait TargetSource {
     fn chessboard_view(&mut self, attempt: usize) -> Result<GrayImage>;
     /// The chessboard lying flat at the table centre.
     fn table_view(&mut self) -> Result<GrayImage>;
-    /// The white sheet under every LED, `exposures` exposures averaged.
-    fn white_sheet(&mut self, exposures: usize) -> Result<Frames>;
+    /// The gray chart `chart` lying on the table with its patches filling the world rectangle
+    /// `world` (`[x0, x1, y0, y1]`, metres), under every LED: one raw CFA mosaic per LED, and
+    /// where the mosaics' samples sit on the sensor.
+    fn gray_chart(
+        &mut self,
+        chart: &ChartDescription,
+        world: [f64; 4],
+        progress: &dyn Progress,
+    ) -> Result<(Vec<Mosaic>, SensorWindow)>;
+    /// The white sheet under every LED, `exposures` exposures averaged. `purpose` ("fit",
+    /// "check") keeps the photographs of different uses apart where a source stores them.
+    fn white_sheet(
+        &mut self,
+        purpose: &str,
+        exposures: usize,
+        progress: &dyn Progress,
+    ) -> Result<Frames>;
     /// Where the chessboard photographs sit on the sensor (binned previews).
     fn view_window(&self) -> SensorWindow;
+    /// Forgets a rejected gray chart's photographs, so the next [`Self::gray_chart`] takes
+    /// new ones.
+    fn forget_gray_chart(&mut self) -> Result<()> {
+        Ok(())
+    }
 }
 
 /// The steps, in order.
@@ -42,6 +64,7 @@ pub trait TargetSource {
 pub enum Step {
     CameraViews,
     Table,
+    GrayChart,
     WhiteSheet,
     Flatness,
     Done,
@@ -75,11 +98,34 @@ pub struct ViewVerdict {
     pub missing_regions: Vec<&'static str>,
 }
 
+/// The gray chart's step: its report, and whether it passed.
+#[derive(Clone, Debug, Serialize)]
+pub struct ChartVerdict {
+    pub accepted: bool,
+    /// Why not (empty when accepted).
+    pub reasons: Vec<String>,
+    /// Per light, the largest deviation from the linear fit that the shading model's
+    /// uncertainty and the patches' sensor noise allow.
+    pub linearity_tolerance: Vec<f64>,
+    pub report: ChartReport,
+}
+
+/// How far the LED positions may be off while the chart is read: the hand measurements (up
+/// to 3 cm, the issue's figure) before the white sheet, the fit (within 5 mm) after it.
+pub const HAND_LED_ERROR_M: f64 = 0.03;
+pub const FITTED_LED_ERROR_M: f64 = 0.005;
+
+/// The default chart's place on the table: 120 x 50 mm centred under the camera.
+pub const CHART_WORLD: [f64; 4] = [-0.06, 0.06, -0.025, 0.025];
+
 /// The wizard over one bundle folder.
 pub struct Wizard {
     pub dir: PathBuf,
     pub hand: Rig,
     pub state: State,
+    /// The gray chart and where on the table the operator lays it.
+    pub chart: ChartDescription,
+    pub chart_world: [f64; 4],
 }
 
 impl Wizard {
@@ -95,6 +141,8 @@ impl Wizard {
                     dir: dir.to_path_buf(),
                     hand,
                     state,
+                    chart: ChartDescription::munsell_12(),
+                    chart_world: CHART_WORLD,
                 },
                 true,
             ));
@@ -114,6 +162,8 @@ impl Wizard {
             dir: dir.to_path_buf(),
             hand,
             state,
+            chart: ChartDescription::munsell_12(),
+            chart_world: CHART_WORLD,
         };
         wizard.save()?;
         Ok((wizard, false))
@@ -225,9 +275,90 @@ impl Wizard {
         let image = source.table_view()?;
         let pose = table::table_pose(&image, &self.state.board, &cam.intrinsics)?;
         self.state.calibration.table = Some(pose);
-        self.state.step = Step::WhiteSheet;
+        self.state.step = Step::GrayChart;
         self.save()?;
         Ok(pose)
+    }
+
+    /// The gray chart under every LED: white-balance gains and the linearity report, read
+    /// with the LEDs' shading as the rig stands now (hand-measured positions). Accepted when
+    /// no patch clipped and every light's worst patch lies within what the shading's
+    /// uncertainty and the sensor noise allow; a rejected chart is left out of the state and
+    /// its reasons say what to change.
+    pub fn take_gray_chart(
+        &mut self,
+        source: &mut dyn TargetSource,
+        progress: &dyn Progress,
+    ) -> Result<ChartVerdict> {
+        let verdict = self.read_chart(source, HAND_LED_ERROR_M, progress)?;
+        if verdict.accepted {
+            self.state.calibration.gray_chart = Some(verdict.report.clone());
+            self.state.step = Step::WhiteSheet;
+            self.save()?;
+        } else {
+            source.forget_gray_chart()?;
+        }
+        Ok(verdict)
+    }
+
+    fn read_chart(
+        &self,
+        source: &mut dyn TargetSource,
+        led_error_m: f64,
+        progress: &dyn Progress,
+    ) -> Result<ChartVerdict> {
+        let rig = self.current_rig(source.view_window());
+        let (mosaics, window) = source.gray_chart(&self.chart, self.chart_world, progress)?;
+        let rect = chart_rect(&rig, window, self.chart_world)?;
+        let shading = Shading { rig: &rig, window };
+        let report = match graychart::calibrate(&mosaics, &self.chart, &rect, Some(&shading)) {
+            Ok(report) => report,
+            // Too few unclipped patches: a reason to reject, not a failure of the wizard.
+            Err(Error::Invalid(reason)) => {
+                return Ok(ChartVerdict {
+                    accepted: false,
+                    reasons: vec![reason],
+                    linearity_tolerance: Vec::new(),
+                    report: ChartReport {
+                        chart: self.chart.name.clone(),
+                        lights: Vec::new(),
+                    },
+                })
+            }
+            Err(e) => return Err(e),
+        };
+        let noise = NoiseModel::from_sensor(&rig.sensor);
+        let mut reasons = Vec::new();
+        let mut tolerances = Vec::new();
+        for (k, light) in report.lights.iter().enumerate() {
+            let l = &light.linearity;
+            if !l.clipped_patches.is_empty() {
+                reasons.push(format!(
+                    "under LED {k} patches {:?} clipped at the white level: lower the exposure \
+                     (the white sheet, brighter still, would clip too)",
+                    l.clipped_patches
+                ));
+            }
+            let tolerance = shading_uncertainty(&rig, k, &self.chart, &rect, window, led_error_m)?
+                + 4.0 * patch_noise(&mosaics[k], &self.chart, &rect, &noise)?;
+            tolerances.push(tolerance);
+            if l.worst_deviation.abs() > tolerance {
+                reasons.push(format!(
+                    "under LED {k} patch {} lies {:+.2} % off the linear fit, more than the \
+                     {:.2} % the shading model and the sensor noise allow: check that the chart \
+                     lies flat where the wizard said and that nothing shades it",
+                    l.worst_patch,
+                    100.0 * l.worst_deviation,
+                    100.0 * tolerance
+                ));
+            }
+        }
+        Ok(ChartVerdict {
+            accepted: reasons.is_empty(),
+            reasons,
+            linearity_tolerance: tolerances,
+            report,
+        })
     }
 
     /// The white sheet: LED positions fitted from the hand measurements.
@@ -238,7 +369,7 @@ impl Wizard {
         progress: &dyn Progress,
     ) -> Result<lights::LightFit> {
         let rig = self.current_rig(source.view_window());
-        let frames = source.white_sheet(1)?;
+        let frames = source.white_sheet("fit", 1, progress)?;
         let sheet = whitesheet::measure(&frames, &rig, reflectance, 8)?;
         let fit = lights::fit(&rig, &sheet, progress)?;
         self.state.calibration.lights = Some(fit.clone());
@@ -249,27 +380,44 @@ impl Wizard {
     }
 
     /// The final check: the sheet re-solved with the calibration, as many exposures averaged
-    /// as the noise model asks for; then the bundle is written.
+    /// as the noise model asks for; the gray chart read again with the fitted LEDs' shading;
+    /// then the bundle is written.
     pub fn finish(
         &mut self,
         source: &mut dyn TargetSource,
         progress: &dyn Progress,
-    ) -> Result<(whitesheet::Flatness, bundle::BundleIndex)> {
+    ) -> Result<(
+        whitesheet::Flatness,
+        Option<ChartVerdict>,
+        bundle::BundleIndex,
+    )> {
         let window = source.view_window();
         let rig = self.current_rig(window);
         let reflectance = self.state.calibration.sheet_reflectance.unwrap_or(0.9);
         let noise = NoiseModel::from_sensor(&rig.sensor);
-        let one = source.white_sheet(1)?;
+        let one = source.white_sheet("check", 1, progress)?;
         let single = whitesheet::flatness(&one, &rig, noise, 1, progress)?;
         let n = whitesheet::exposures_needed(
             single.predicted_noise_max_deg,
             FLATNESS_TOLERANCE_DEG - single.block_max_deg,
         )
         .min(64);
-        let frames = source.white_sheet(n)?;
+        let frames = source.white_sheet("check", n, progress)?;
         let check = whitesheet::flatness(&frames, &rig, noise, n, progress)?;
         let sheet = whitesheet::measure(&frames, &rig, reflectance, 8)?;
         self.state.calibration.flatness = Some(check.clone());
+        // With the LEDs where the fit put them the chart's shading is known far better: its
+        // linearity report is read again, and that one goes into the bundle.
+        let chart = match self.state.calibration.gray_chart {
+            Some(_) => {
+                let verdict = self.read_chart(source, FITTED_LED_ERROR_M, progress)?;
+                if !verdict.report.lights.is_empty() {
+                    self.state.calibration.gray_chart = Some(verdict.report.clone());
+                }
+                Some(verdict)
+            }
+            None => None,
+        };
         let index = bundle::write(
             &self.dir,
             &self.state.rig_name,
@@ -280,6 +428,108 @@ impl Wizard {
         )?;
         self.state.step = Step::Done;
         self.save()?;
-        Ok((check, index))
+        Ok((check, chart, index))
     }
+}
+
+/// The chart's rectangle in the mosaics (`window` on the sensor): the projection of its world
+/// corners through the calibrated camera.
+pub fn chart_rect(rig: &Rig, window: SensorWindow, world: [f64; 4]) -> Result<ChartRect> {
+    let [x0, x1, y0, y1] = world;
+    let to_image = |x: f64, y: f64| -> Result<(f64, f64)> {
+        let (u, v) = rig
+            .camera
+            .project(&nalgebra::Vector3::new(x, y, rig.sample.z_m))
+            .ok_or_else(|| Error::Invalid("the gray chart is not in front of the camera".into()))?;
+        Ok(((u - window.x0) / window.step, (v - window.y0) / window.step))
+    };
+    let (ax, ay) = to_image(x0, y1)?;
+    let (bx, by) = to_image(x1, y0)?;
+    Ok(ChartRect {
+        x0: ax,
+        y0: ay,
+        x1: bx,
+        y1: by,
+    })
+}
+
+/// How far LED `k`'s modelled shading may bend the chart's linearity fit when the LED is up
+/// to `error_m` from where `rig` puts it: for the LED moved by `error_m` along each axis,
+/// ideal readings (nominal reflectance times the ratio of the moved LED's shading to the
+/// modelled one at each patch) go through the same fit as the chart's readings, and the worst
+/// patch's deviation is kept. A common factor goes into the slope; the spread shows, largest
+/// on the darkest patch, where a small shift of the fitted offset is a large fraction.
+fn shading_uncertainty(
+    rig: &Rig,
+    k: usize,
+    chart: &ChartDescription,
+    rect: &ChartRect,
+    window: SensorWindow,
+    error_m: f64,
+) -> Result<f64> {
+    let mapper = rig.camera.plane_mapper(rig.sample.z_m);
+    let (cw, ch) = (
+        (rect.x1 - rect.x0) / chart.cols as f64,
+        (rect.y1 - rect.y0) / chart.rows as f64,
+    );
+    let points = (0..chart.rows * chart.cols)
+        .map(|i| {
+            let (r, c) = (i / chart.cols, i % chart.cols);
+            let (u, v) = window.to_sensor(
+                rect.x0 + (c as f64 + 0.5) * cw,
+                rect.y0 + (r as f64 + 0.5) * ch,
+            );
+            mapper
+                .map(u, v)
+                .ok_or_else(|| Error::Invalid("the gray chart is not on the table plane".into()))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let shade = |led: &crate::rig::Led, p: &nalgebra::Vector3<f64>| {
+        let s = led.sample_at(p);
+        s.falloff * s.direction.z.max(0.0)
+    };
+    let led = &rig.leds[k];
+    let mut worst = 0.0f64;
+    for axis in 0..3 {
+        for sign in [-1.0, 1.0] {
+            let mut moved = led.clone();
+            moved.position_m[axis] += sign * error_m;
+            let readings = points
+                .iter()
+                .zip(&chart.reflectance)
+                .map(|(p, x)| {
+                    let y = x * shade(&moved, p) / shade(led, p);
+                    graychart::PatchReading {
+                        rgb: [y; 3],
+                        clipped: false,
+                    }
+                })
+                .collect();
+            let fit = graychart::analyse(chart, readings)?;
+            worst = worst.max(fit.linearity.worst_deviation.abs());
+        }
+    }
+    Ok(worst)
+}
+
+/// The largest relative standard deviation of a patch's green mean: the sensor's noise at the
+/// patch's level over the green samples the patch reading averages.
+fn patch_noise(
+    mosaic: &Mosaic,
+    chart: &ChartDescription,
+    rect: &ChartRect,
+    noise: &NoiseModel,
+) -> Result<f64> {
+    let side = |extent: f64, n: usize| extent / n as f64 * chart.sample_fraction;
+    let samples = side(rect.x1 - rect.x0, chart.cols) * side(rect.y1 - rect.y0, chart.rows);
+    // Half the CFA sites are green.
+    let greens = (samples / 2.0).max(1.0);
+    // The readings as the sensor gave them (before the shading is divided out).
+    Ok(graychart::read_patches(mosaic, chart, rect)?
+        .iter()
+        .map(|p| {
+            let v = p.rgb[1].max(1e-6);
+            (noise.photon * v + noise.floor).sqrt() / greens.sqrt() / v
+        })
+        .fold(0.0, f64::max))
 }

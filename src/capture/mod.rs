@@ -11,9 +11,11 @@ pub mod lights;
 pub mod manifest;
 pub mod sequencer;
 pub mod set;
+pub mod single;
 
 pub use diligent::DiligentSet;
 pub use interrupt::Interrupt;
 pub use manifest::{CameraSettings, FrameEntry, FrameKind, ImageInfo, Manifest, SyntheticInfo};
 pub use sequencer::{run_capture, CaptureOptions, CaptureReport, FrameRecord, FrameStatus};
 pub use set::{light_file_name, CaptureSet, CaptureSetWriter, DroppedFrame, LoadedFrames};
+pub use single::shoot_one;

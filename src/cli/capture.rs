@@ -41,10 +41,10 @@ pub fn interrupt_on_ctrl_c() -> anyhow::Result<Interrupt> {
 pub struct PortArgs {
     /// Serial port of the LED controller, or `auto` (the one Arduino plugged in).
     #[arg(long, default_value = "auto")]
-    port: String,
+    pub port: String,
     /// Run the LED firmware in its emulator (firmware/build/psscan-avr-sim) instead of a board.
     #[arg(long, conflicts_with = "port")]
-    firmware_sim: bool,
+    pub firmware_sim: bool,
     /// How long to wait for the board's READY banner after opening the port (default: 2500
     /// on a serial device, 0 on a pseudo-terminal).
     #[arg(long)]
@@ -61,9 +61,9 @@ impl PortArgs {
 }
 
 /// An open controller, and the emulator behind it when there is one.
-struct Controller {
-    lights: SharedLights,
-    emulated: Option<EmulatedController>,
+pub(super) struct Controller {
+    pub lights: SharedLights,
+    pub emulated: Option<EmulatedController>,
     _scratch: Option<ScratchFile>,
 }
 
@@ -79,7 +79,7 @@ impl Drop for ScratchFile {
 impl Controller {
     /// Opens the controller. With `--firmware-sim` the emulator's pin log goes to `pin_log`
     /// when given, else to a scratch folder.
-    fn open(args: &PortArgs, pin_log: Option<&Path>) -> anyhow::Result<Controller> {
+    pub(super) fn open(args: &PortArgs, pin_log: Option<&Path>) -> anyhow::Result<Controller> {
         if args.firmware_sim {
             let (scratch, path) = match pin_log {
                 Some(p) => (None, p.to_path_buf()),
@@ -222,7 +222,7 @@ pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()
     Ok(())
 }
 
-fn open_camera(
+pub(super) fn open_camera(
     spec: &str,
     frame_ext: Option<&str>,
     shot_timeout: Duration,

@@ -77,6 +77,11 @@ struct BenchArgs {
     /// Do not run the NumPy peer even when python3 and numpy are present.
     #[arg(long)]
     no_numpy: bool,
+    /// Only what the speed targets need (minutes, not most of an hour at 16 MP): the
+    /// Lambertian scene, the memory-read floor, the `fast f32 tiled` variants (fresh and
+    /// reused outputs, normal-only), the NumPy peer and peak memory.
+    #[arg(long)]
+    speed_only: bool,
 }
 
 #[derive(Args)]
@@ -627,6 +632,7 @@ fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         numpy,
         numpy_script: script,
         scratch: std::env::temp_dir().join(format!("psscan-bench-{}", std::process::id())),
+        speed_only: args.speed_only,
     };
     let result = psscan::bench::run(&options, bars);
     let _ = std::fs::remove_dir_all(&options.scratch);
@@ -636,6 +642,7 @@ fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         print_json(&serde_json::json!({
             "result": result,
             "targets": psscan::bench::report::targets(&result),
+            "estimators": psscan::bench::report::estimator_figures(&result),
             "out": args.out,
         }));
     } else {

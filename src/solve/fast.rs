@@ -23,7 +23,7 @@ use rayon::prelude::*;
 use super::kernel::{Kernel, RowOut, Scratch};
 use super::lights::Illumination;
 use super::tiles::{self, exact_coefficients, TileGrid};
-use super::{PixelStatus, SolveInput, SolveOptions, SolveResult, LUMINANCE_WEIGHTS};
+use super::{PixelFit, PixelStatus, SolveInput, SolveOptions, SolveResult, LUMINANCE_WEIGHTS};
 use crate::plane::Frames;
 use crate::progress::Progress;
 
@@ -74,6 +74,9 @@ impl Real for f64 {
 #[derive(Clone, Copy)]
 struct V<T>([T; LANES]);
 
+// No `array::map` or closures below: code the compiler does not inline into the AVX-512 /
+// AVX2 instances is compiled for the baseline CPU, where `mul_add` is a library call (perf
+// showed a third of the kernel's time in such calls).
 impl<T: Real> V<T> {
     #[inline(always)]
     fn splat(v: T) -> Self {
@@ -81,11 +84,20 @@ impl<T: Real> V<T> {
     }
     #[inline(always)]
     fn sqrt(self) -> Self {
-        V(self.0.map(|v| v.sqrt()))
+        let mut out = self.0;
+        for v in &mut out {
+            *v = v.sqrt();
+        }
+        V(out)
     }
     #[inline(always)]
     fn max(self, floor: T) -> Self {
-        V(self.0.map(|v| if v > floor { v } else { floor }))
+        let mut out = self.0;
+        for v in &mut out {
+            // NaN becomes `floor` too.
+            *v = if *v > floor { *v } else { floor };
+        }
+        V(out)
     }
 }
 
@@ -106,7 +118,11 @@ macro_rules! lane_op {
             type Output = V<T>;
             #[inline(always)]
             fn $method(self, o: T) -> V<T> {
-                V(self.0.map(|v| v $op o))
+                let mut out = self.0;
+                for l in 0..LANES {
+                    out[l] = self.0[l] $op o;
+                }
+                V(out)
             }
         }
     };
@@ -136,6 +152,9 @@ pub struct Context<'a> {
     dark_threshold: f64,
     max_condition: f64,
     normal_only: bool,
+    /// The outputs hold a previous solve's values (`solve_reusing`): fast-path pixels must
+    /// also write their predicted error (0) and fit, which fresh zeroed outputs already hold.
+    pub reused_outputs: bool,
 }
 
 impl<'a> Context<'a> {
@@ -163,6 +182,7 @@ impl<'a> Context<'a> {
                     .sqrt(),
             max_condition: options.max_condition,
             normal_only: options.normal_only,
+            reused_outputs: false,
         }
     }
 }
@@ -179,6 +199,24 @@ pub struct RowScratch<T> {
     pixel: Vec<f64>,
 }
 
+impl<T: Real> RowScratch<T> {
+    /// Buffers for the rows of `ctx`.
+    pub fn new(ctx: &Context) -> Self {
+        let stride = tiles::stride(ctx.illumination.len());
+        let nodes_x = match ctx.coefficients {
+            Coefficients::Tiled(g) => g.nodes_x,
+            Coefficients::PerPixel => 0,
+        };
+        RowScratch {
+            coef: vec![[T::zero(); LANES]; stride],
+            row_left: vec![T::zero(); nodes_x * stride],
+            row_slope: vec![T::zero(); nodes_x * stride],
+            exact: Scratch::with_capacity(ctx.illumination.len()),
+            pixel: vec![0.0; stride],
+        }
+    }
+}
+
 /// Solves all rows with the streaming kernel in precision `T`.
 pub fn solve_rows<T: Real>(
     ctx: &Context,
@@ -186,20 +224,9 @@ pub fn solve_rows<T: Real>(
     progress: &dyn Progress,
     row_fn: fn(&Context, usize, &mut RowOut, &mut RowScratch<T>),
 ) {
-    let stride = tiles::stride(ctx.illumination.len());
-    let nodes_x = match ctx.coefficients {
-        Coefficients::Tiled(g) => g.nodes_x,
-        Coefficients::PerPixel => 0,
-    };
     let rows = RowOut::split(result);
     rows.into_par_iter().enumerate().for_each_init(
-        || RowScratch::<T> {
-            coef: vec![[T::zero(); LANES]; stride],
-            row_left: vec![T::zero(); nodes_x * stride],
-            row_slope: vec![T::zero(); nodes_x * stride],
-            exact: Scratch::with_capacity(ctx.illumination.len()),
-            pixel: vec![0.0; stride],
-        },
+        || RowScratch::<T>::new(ctx),
         |scratch, (y, mut row)| {
             row_fn(ctx, y, &mut row, scratch);
             progress.advance(1);
@@ -322,6 +349,10 @@ fn solve_row<T: Real, const FMA: bool>(
             let m = &mask.data[y * w + x..y * w + x + LANES];
             inside.copy_from_slice(m);
             if !inside.iter().any(|&b| b) {
+                // The outputs are not prefilled (`SolveResult::zeroed`).
+                for l in 0..LANES {
+                    reset_pixel(row, x + l, PixelStatus::OutsideMask);
+                }
                 continue;
             }
         }
@@ -340,6 +371,12 @@ fn solve_row<T: Real, const FMA: bool>(
             None => Source::Table(&scratch.coef),
         };
         let ok = solve_chunk::<T, FMA>(ctx, y * w + x, &source, valid, row, x);
+        // Fast-path pixels have no predicted error: the plane is zero where this kernel
+        // wrote it first, but the last chunk overlaps pixels the exact kernel may have solved.
+        if ctx.reused_outputs || x + LANES != x0 {
+            row.predicted[x..x + LANES].fill(0.0);
+            row.fit[x..x + LANES].fill(PixelFit::LeastSquares);
+        }
         for l in 0..LANES {
             if inside[l] && !ok[l] {
                 exact_pixel(ctx, y, x + l, row, scratch);
@@ -387,19 +424,22 @@ fn prepare_row<T: Real>(grid: &TileGrid, y: usize, h: usize, w: usize, s: &mut R
     let (jy, ty) = grid.locate(y, h, grid.nodes_y);
     let jy1 = (jy + 1).min(grid.nodes_y - 1);
     let stride = grid.stride;
-    for jx in 0..grid.nodes_x {
+    // Iterators, not indices: the loops vectorise (indexed, the second ran scalar).
+    for (jx, left) in s.row_left.chunks_exact_mut(stride).enumerate() {
         let (a, c) = (grid.node(jx, jy), grid.node(jx, jy1));
-        for i in 0..stride {
-            s.row_left[jx * stride + i] = T::of(a[i] + (c[i] - a[i]) * ty);
+        for ((o, &a), &c) in left.iter_mut().zip(a).zip(c) {
+            *o = T::of(a + (c - a) * ty);
         }
     }
-    for jx in 0..grid.nodes_x {
+    let left = &s.row_left;
+    for (jx, slope) in s.row_slope.chunks_exact_mut(stride).enumerate() {
         let jx1 = (jx + 1).min(grid.nodes_x - 1);
         let span = grid.node_pos(jx1, w) as f64 - grid.node_pos(jx, w) as f64;
-        let inv = if span > 0.0 { 1.0 / span } else { 0.0 };
-        for i in 0..stride {
-            let d = s.row_left[jx1 * stride + i] - s.row_left[jx * stride + i];
-            s.row_slope[jx * stride + i] = d * T::of(inv);
+        let inv = T::of(if span > 0.0 { 1.0 / span } else { 0.0 });
+        let this = &left[jx * stride..(jx + 1) * stride];
+        let next = &left[jx1 * stride..(jx1 + 1) * stride];
+        for ((o, &a), &b) in slope.iter_mut().zip(this).zip(next) {
+            *o = (b - a) * inv;
         }
     }
 }
@@ -426,7 +466,11 @@ impl<T: Real> Source<'_, T> {
                 offset,
             } => {
                 let (a, b) = (left[i], slope[i]);
-                offset.map(|o| madd::<T, FMA>(b, o, a))
+                let mut out = *offset;
+                for o in &mut out {
+                    *o = madd::<T, FMA>(b, *o, a);
+                }
+                out
             }
             Source::Table(t) => t[i],
         }
@@ -492,46 +536,55 @@ fn solve_chunk<T: Real, const FMA: bool>(
     row: &mut RowOut,
     x: usize,
 ) -> [bool; LANES] {
-    let wt = LUMINANCE_WEIGHTS.map(T::of);
+    let wt = [
+        T::of(LUMINANCE_WEIGHTS[0]),
+        T::of(LUMINANCE_WEIGHTS[1]),
+        T::of(LUMINANCE_WEIGHTS[2]),
+    ];
     let threshold = T::of(ctx.dark_threshold);
     let max = T::of(f32::MAX as f64);
     let zero = T::zero();
     let k_count = ctx.frames.lights.len();
     // Normal matrix (xx, xy, xz, yy, yz, zz) of all lights; dropped lights are subtracted.
-    let mut a: [[T; LANES]; 6] = std::array::from_fn(|i| coef.get::<FMA>(4 * k_count + i));
+    let mut a = [[zero; LANES]; 6];
+    for (i, a) in a.iter_mut().enumerate() {
+        *a = coef.get::<FMA>(4 * k_count + i);
+    }
     // Right-hand sides: R, G, B, or the luminance alone in slot 0 for a normal-only solve;
     // and the sum of squared luminance measurements, for the residual.
     let mut b = [[[zero; LANES]; 3]; 3];
     let mut lum_sq = [zero; LANES];
     let mut dropped = [zero; LANES];
     for (k, frame) in ctx.frames.lights.iter().enumerate() {
-        let load = |p: &crate::plane::Plane| -> [T; LANES] {
-            let src: &[f32; LANES] = p.data[i0..i0 + LANES].try_into().expect("a whole chunk");
-            src.map(T::of32)
-        };
-        let (r, g, bl) = (load(&frame.rgb.r), load(&frame.rgb.g), load(&frame.rgb.b));
+        let (r, g, bl) = (
+            load::<T>(&frame.rgb.r, i0),
+            load::<T>(&frame.rgb.g, i0),
+            load::<T>(&frame.rgb.b, i0),
+        );
         const NONE_SATURATED: [bool; LANES] = [false; LANES];
         let sat: &[bool; LANES] = match &frame.saturated {
             Some(m) => m.data[i0..i0 + LANES].try_into().expect("a whole chunk"),
             None => &NONE_SATURATED,
         };
-        let s = ctx.scale[k].map(T::of);
+        let sk = &ctx.scale[k];
+        let s = [T::of(sk[0]), T::of(sk[1]), T::of(sk[2])];
         let (lx, ly, lz) = (
             coef.get::<FMA>(3 * k),
             coef.get::<FMA>(3 * k + 1),
             coef.get::<FMA>(3 * k + 2),
         );
         let inv_falloff = coef.get::<FMA>(3 * k_count + k);
-        let mut keep = [false; LANES];
         let mut v = [[zero; LANES]; 3];
         let mut lum_k = [zero; LANES];
+        let mut one = [zero; LANES];
         for l in 0..LANES {
             let lum = madd::<T, FMA>(wt[0], r[l], madd::<T, FMA>(wt[1], g[l], wt[2] * bl[l]));
-            keep[l] = !sat[l] && lum > threshold && lum <= max;
-            let m = if keep[l] { inv_falloff[l] } else { zero };
-            let rgb = [r[l], g[l], bl[l]].map(|v| if keep[l] { v } else { zero });
+            let keep = !sat[l] && lum > threshold && lum <= max;
+            let m = if keep { inv_falloff[l] } else { zero };
+            let rgb = [r[l], g[l], bl[l]];
             for c in 0..3 {
-                v[c][l] = rgb[c] * (s[c] * m);
+                let value = if keep { rgb[c] } else { zero };
+                v[c][l] = value * (s[c] * m);
             }
             lum_k[l] = madd::<T, FMA>(
                 wt[0],
@@ -539,19 +592,19 @@ fn solve_chunk<T: Real, const FMA: bool>(
                 madd::<T, FMA>(wt[1], v[1][l], wt[2] * v[2][l]),
             );
             lum_sq[l] = madd::<T, FMA>(lum_k[l], lum_k[l], lum_sq[l]);
+            one[l] = if keep { zero } else { T::one() };
         }
-        {
-            for l in 0..LANES {
-                let one = if keep[l] { zero } else { T::one() };
-                dropped[l] += one;
-                let (mx, my, mz) = (one * lx[l], one * ly[l], one * lz[l]);
-                a[0][l] = madd::<T, FMA>(-mx, lx[l], a[0][l]);
-                a[1][l] = madd::<T, FMA>(-mx, ly[l], a[1][l]);
-                a[2][l] = madd::<T, FMA>(-mx, lz[l], a[2][l]);
-                a[3][l] = madd::<T, FMA>(-my, ly[l], a[3][l]);
-                a[4][l] = madd::<T, FMA>(-my, lz[l], a[4][l]);
-                a[5][l] = madd::<T, FMA>(-mz, lz[l], a[5][l]);
-            }
+        for l in 0..LANES {
+            dropped[l] += one[l];
+            // A select, not a multiply by 0 or 1: AVX-512 does it as a masked FMA.
+            let drop = one[l] != zero;
+            let (x, y, z) = (lx[l], ly[l], lz[l]);
+            a[0][l] = subtract_if::<T, FMA>(drop, a[0][l], x, x);
+            a[1][l] = subtract_if::<T, FMA>(drop, a[1][l], x, y);
+            a[2][l] = subtract_if::<T, FMA>(drop, a[2][l], x, z);
+            a[3][l] = subtract_if::<T, FMA>(drop, a[3][l], y, y);
+            a[4][l] = subtract_if::<T, FMA>(drop, a[4][l], y, z);
+            a[5][l] = subtract_if::<T, FMA>(drop, a[5][l], z, z);
         }
         if ctx.normal_only {
             for l in 0..LANES {
@@ -570,7 +623,7 @@ fn solve_chunk<T: Real, const FMA: bool>(
         }
     }
     let used = V::splat(T::of(k_count as f64)) - V(dropped);
-    let a = a.map(V);
+    let a = [V(a[0]), V(a[1]), V(a[2]), V(a[3]), V(a[4]), V(a[5])];
     let [xx, xy, xz, yy, yz, zz] = a;
     // Adjugate of the symmetric normal matrix; its inverse is adjugate / determinant.
     let adj = [
@@ -583,32 +636,29 @@ fn solve_chunk<T: Real, const FMA: bool>(
     ];
     let det = xx * adj[0] + xy * adj[1] + xz * adj[2];
     let inv_det = V::splat(T::one()) / det;
-    let inv = adj.map(|v| v * inv_det);
-    let frob_sq = |m: &[V<T>; 6]| {
-        m[0] * m[0]
-            + m[3] * m[3]
-            + m[5] * m[5]
-            + (m[1] * m[1] + m[2] * m[2] + m[4] * m[4]) * T::of(2.0)
-    };
+    let inv = [
+        adj[0] * inv_det,
+        adj[1] * inv_det,
+        adj[2] * inv_det,
+        adj[3] * inv_det,
+        adj[4] * inv_det,
+        adj[5] * inv_det,
+    ];
     // Frobenius condition number of A, square-rooted to speak of L (as the exact kernel).
     let condition = (frob_sq(&a) * frob_sq(&inv)).sqrt().sqrt();
-    let apply = |v: &[V<T>; 3]| -> [V<T>; 3] {
-        [
-            inv[0] * v[0] + inv[1] * v[1] + inv[2] * v[2],
-            inv[1] * v[0] + inv[3] * v[1] + inv[4] * v[2],
-            inv[2] * v[0] + inv[4] * v[1] + inv[5] * v[2],
-        ]
-    };
-    let b = b.map(|bc| bc.map(V));
     let (n_lum, b_lum, n_rgb) = if ctx.normal_only {
-        (apply(&b[0]), b[0], None)
+        let b0 = vectors(&b[0]);
+        (apply(&inv, &b0), b0, None)
     } else {
-        let n_rgb = [apply(&b[0]), apply(&b[1]), apply(&b[2])];
-        let mix =
-            |v: &[[V<T>; 3]; 3], d: usize| v[0][d] * wt[0] + v[1][d] * wt[1] + v[2][d] * wt[2];
+        let b = [vectors(&b[0]), vectors(&b[1]), vectors(&b[2])];
+        let n_rgb = [apply(&inv, &b[0]), apply(&inv, &b[1]), apply(&inv, &b[2])];
         (
-            [mix(&n_rgb, 0), mix(&n_rgb, 1), mix(&n_rgb, 2)],
-            [mix(&b, 0), mix(&b, 1), mix(&b, 2)],
+            [
+                mix(&n_rgb, 0, &wt),
+                mix(&n_rgb, 1, &wt),
+                mix(&n_rgb, 2, &wt),
+            ],
+            [mix(&b, 0, &wt), mix(&b, 1, &wt), mix(&b, 2, &wt)],
             Some(n_rgb),
         )
     };
@@ -618,41 +668,33 @@ fn solve_chunk<T: Real, const FMA: bool>(
     let residual = ((V(lum_sq) - nb).max(zero) / used).sqrt();
     let length = (n_lum[0] * n_lum[0] + n_lum[1] * n_lum[1] + n_lum[2] * n_lum[2]).sqrt();
     let inv_length = V::splat(T::one()) / length;
-    let unit = n_lum.map(|v| v * inv_length);
+    let unit = [
+        n_lum[0] * inv_length,
+        n_lum[1] * inv_length,
+        n_lum[2] * inv_length,
+    ];
     let albedo = match &n_rgb {
         None => [length; 3],
-        Some(n) => {
-            std::array::from_fn(|c| n[c][0] * unit[0] + n[c][1] * unit[1] + n[c][2] * unit[2])
-        }
+        Some(n) => [dot(&n[0], &unit), dot(&n[1], &unit), dot(&n[2], &unit)],
     };
     let mut ok = valid;
     let (min_len, cond_max) = (T::of(1e-12), T::of(ctx.max_condition));
+    let sum = albedo[0] + albedo[1] + albedo[2] + residual;
+    // `&`, not `&&`: branch-free, so the lanes are tested in vectors.
     for l in 0..LANES {
-        ok[l] &= used.0[l] >= T::of(3.0)
-            && det.0[l] > zero
-            && condition.0[l] <= cond_max
-            && length.0[l] > min_len
-            && length.0[l] <= max
-            && (albedo[0].0[l] + albedo[1].0[l] + albedo[2].0[l] + residual.0[l]).is_finite();
+        ok[l] &= (used.0[l] >= T::of(3.0))
+            & (det.0[l] > zero)
+            & (condition.0[l] <= cond_max)
+            & (length.0[l] > min_len)
+            & (length.0[l] <= max)
+            & sum.0[l].is_finite();
     }
-    let (unit, albedo, residual, condition) = (
-        unit.map(|v| v.0),
-        albedo.map(|v| v.0),
-        residual.0,
-        condition.0,
-    );
-    let store = |out: &mut [f32], v: &[T; LANES]| {
-        for (o, v) in out[x..x + LANES].iter_mut().zip(v) {
-            *o = v.to32();
-        }
-    };
     for d in 0..3 {
-        store(row.normal[d], &unit[d]);
-        store(row.albedo[d], &albedo[d]);
+        store(&mut row.normal[d][x..x + LANES], &unit[d]);
+        store(&mut row.albedo[d][x..x + LANES], &albedo[d]);
     }
-    store(row.residual, &residual);
-    store(row.condition, &condition);
-    row.predicted[x..x + LANES].fill(0.0);
+    store(&mut row.residual[x..x + LANES], &residual);
+    store(&mut row.condition[x..x + LANES], &condition);
     for (o, u) in row.lights[x..x + LANES].iter_mut().zip(&used.0) {
         *o = u.to32() as u8;
     }
@@ -660,8 +702,69 @@ fn solve_chunk<T: Real, const FMA: bool>(
     ok
 }
 
+/// `a - p q` where `drop`, else `a`.
+#[inline(always)]
+fn subtract_if<T: Real, const FMA: bool>(drop: bool, a: T, p: T, q: T) -> T {
+    if drop {
+        madd::<T, FMA>(-p, q, a)
+    } else {
+        a
+    }
+}
+
+/// `LANES` values of plane `p` from pixel index `i0`.
+#[inline(always)]
+fn load<T: Real>(p: &crate::plane::Plane, i0: usize) -> [T; LANES] {
+    let src: &[f32; LANES] = p.data[i0..i0 + LANES].try_into().expect("a whole chunk");
+    let mut out = [T::zero(); LANES];
+    for (o, &v) in out.iter_mut().zip(src) {
+        *o = T::of32(v);
+    }
+    out
+}
+
+/// Writes `v` to `out` (`LANES` values) in `f32`.
+#[inline(always)]
+fn store<T: Real>(out: &mut [f32], v: &V<T>) {
+    for (o, v) in out.iter_mut().zip(&v.0) {
+        *o = v.to32();
+    }
+}
+
+/// Squared Frobenius norm of a symmetric 3x3 matrix stored as (xx, xy, xz, yy, yz, zz).
+#[inline(always)]
+fn frob_sq<T: Real>(m: &[V<T>; 6]) -> V<T> {
+    m[0] * m[0] + m[3] * m[3] + m[5] * m[5] + (m[1] * m[1] + m[2] * m[2] + m[4] * m[4]) * T::of(2.0)
+}
+
+/// The symmetric matrix `m` (layout of [`frob_sq`]) times `v`.
+#[inline(always)]
+fn apply<T: Real>(m: &[V<T>; 6], v: &[V<T>; 3]) -> [V<T>; 3] {
+    [
+        m[0] * v[0] + m[1] * v[1] + m[2] * v[2],
+        m[1] * v[0] + m[3] * v[1] + m[4] * v[2],
+        m[2] * v[0] + m[4] * v[1] + m[5] * v[2],
+    ]
+}
+
+/// Component `d` of the luminance combination of three per-channel vectors.
+#[inline(always)]
+fn mix<T: Real>(v: &[[V<T>; 3]; 3], d: usize, wt: &[T; 3]) -> V<T> {
+    v[0][d] * wt[0] + v[1][d] * wt[1] + v[2][d] * wt[2]
+}
+
+#[inline(always)]
+fn vectors<T: Real>(v: &[[T; LANES]; 3]) -> [V<T>; 3] {
+    [V(v[0]), V(v[1]), V(v[2])]
+}
+
+#[inline(always)]
+fn dot<T: Real>(a: &[V<T>; 3], b: &[V<T>; 3]) -> V<T> {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
 /// Resets pixel `x` of `row` to the unsolved defaults with `status`.
-fn reset_pixel(row: &mut RowOut, x: usize, status: PixelStatus) {
+pub(super) fn reset_pixel(row: &mut RowOut, x: usize, status: PixelStatus) {
     for d in 0..3 {
         row.normal[d][x] = if d == 2 { 1.0 } else { 0.0 };
         row.albedo[d][x] = 0.0;
@@ -670,6 +773,7 @@ fn reset_pixel(row: &mut RowOut, x: usize, status: PixelStatus) {
     row.predicted[x] = 0.0;
     row.condition[x] = 0.0;
     row.lights[x] = 0;
+    row.fit[x] = PixelFit::LeastSquares;
     row.status[x] = status;
 }
 

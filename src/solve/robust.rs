@@ -368,6 +368,11 @@ fn weighted_fit(chi: &ChiSquare, measurements: &[Measurement]) -> Option<Weighte
     Some(WeightedFit { n_lum, cov, chi2 })
 }
 
+/// The chi-square statistic of the weighted fit of `measurements` (its minimum over normals).
+pub(super) fn weighted_statistic(chi: &ChiSquare, measurements: &[Measurement]) -> Option<f64> {
+    weighted_fit(chi, measurements).map(|f| f.chi2)
+}
+
 /// Condition number of the lights' (unweighted) matrix, as the kernel reports it.
 fn condition_of(measurements: &[Measurement]) -> f64 {
     let a: Matrix3<f64> = measurements.iter().map(|m| m.l * m.l.transpose()).sum();

@@ -184,7 +184,7 @@ fn pixels_outside_the_mask_are_not_touched() {
 }
 
 #[test]
-fn streaming_options_need_the_least_squares_estimator() {
+fn the_robust_estimator_refuses_the_streaming_options() {
     let rig = Rig::default_rig();
     let (_, frames) = render_scene(&rig, SceneKind::Lambertian, 0.01, &Silent).unwrap();
     let input = SolveInput {
@@ -195,9 +195,138 @@ fn streaming_options_need_the_least_squares_estimator() {
         mask: None,
     };
     let options = SolveOptions {
-        estimator: Estimator::Adaptive,
+        estimator: Estimator::Robust,
         ..streaming(Precision::F32, None)
     };
     let err = solve(&input, &options, &Silent).unwrap_err().to_string();
-    assert!(err.contains("--estimator ls"), "{err}");
+    assert!(err.contains("--estimator adaptive"), "{err}");
+}
+
+/// The adaptive estimator on the streaming kernel: every pixel its screen sends on is solved
+/// by the exact kernel exactly as the exact adaptive estimator solves it (same fit, same
+/// normal to the bit), every other pixel is the fast least squares (within the f32 kernel's
+/// rounding of the exact one), and the pixel states agree, damaged inputs and mask included.
+#[test]
+fn streaming_adaptive_escalates_through_the_exact_kernel() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::Shadows, MP, &Silent).unwrap();
+    let frames = damaged(frames);
+    let n = frames.width * frames.height;
+    let mut mask = Mask::new(frames.width, frames.height, true);
+    mask.data[n / 2 + 11] = false;
+    let adaptive = SolveOptions {
+        estimator: Estimator::Adaptive,
+        ..exact_ls()
+    };
+    let exact = run(&rig, &frames, &adaptive, Some(&mask));
+    let fast = run(
+        &rig,
+        &frames,
+        &SolveOptions {
+            precision: Precision::F32,
+            streaming_kernel: true,
+            ..adaptive
+        },
+        Some(&mask),
+    );
+    let ls = run(&rig, &frames, &exact_ls(), Some(&mask));
+    assert_eq!(exact.status, fast.status);
+    let robust = fast.count_fit(PixelFit::Robust);
+    assert!(robust > 0, "the shadows must escalate some pixels");
+    // Forward error of the f32 least-squares solve, as in the f32 kernel's test.
+    let condition = ls.condition.data.iter().fold(0f32, |a, &b| a.max(b)) as f64;
+    let bound = (condition * condition * 10.0 * 4.0 * f32::EPSILON as f64).to_degrees();
+    for i in 0..n {
+        if fast.status[i] != PixelStatus::Solved {
+            continue;
+        }
+        let same_as_exact = fast.fit[i] == exact.fit[i] && fast.normal_at(i) == exact.normal_at(i);
+        if fast.fit[i] != PixelFit::LeastSquares {
+            assert!(same_as_exact, "pixel {i}: escalated differently");
+        } else {
+            // Fast least squares, or sent on and kept all lights in the exact kernel.
+            let e = crate::eval::angle_deg(&fast.normal_at(i), &ls.normal_at(i));
+            assert!(e < bound || same_as_exact, "pixel {i}: {e} deg");
+        }
+    }
+}
+
+/// Every output plane, bit for bit.
+fn assert_same(a: &SolveResult, b: &SolveResult, what: &str) {
+    let planes = |r: &SolveResult| {
+        let mut v: Vec<Vec<u32>> = r
+            .normal
+            .iter()
+            .chain(&r.albedo)
+            .chain([&r.residual, &r.predicted_error_deg, &r.condition])
+            .map(|p| p.data.iter().map(|x| x.to_bits()).collect())
+            .collect();
+        v.push(r.lights_used.iter().map(|&x| x as u32).collect());
+        v.push(r.status.iter().map(|&x| x as u32).collect());
+        v.push(r.fit.iter().map(|&x| x as u32).collect());
+        v
+    };
+    assert!(planes(a) == planes(b), "{what}: outputs differ");
+    assert_eq!(
+        (a.escalated, a.sheen_everywhere),
+        (b.escalated, b.sheen_everywhere),
+        "{what}"
+    );
+}
+
+#[test]
+fn reused_outputs_give_the_same_results_as_fresh_ones() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::ShadowsSheen, MP, &Silent).unwrap();
+    let frames = damaged(frames);
+    let mut mask = Mask::new(frames.width, frames.height, true);
+    // Whole chunks outside the mask, and a ragged edge inside chunks.
+    for y in 0..frames.height {
+        for x in 0..(y % 40) {
+            mask.data[y * frames.width + x] = false;
+        }
+    }
+    let input = |mask| SolveInput {
+        frames: &frames,
+        lights: LightSource::Rig(&rig),
+        noise: bench_noise(&rig),
+        exposure: 1.0,
+        mask,
+    };
+    let robust = SolveOptions {
+        estimator: Estimator::Robust,
+        ..SolveOptions::default()
+    };
+    let predicted = SolveOptions {
+        predict_error: true,
+        ..streaming(Precision::F32, Some(0.01))
+    };
+    let cases = [
+        (
+            "f32 tiled after robust",
+            robust.clone(),
+            predicted.clone(),
+            None,
+        ),
+        (
+            "f32 tiled, mask",
+            robust.clone(),
+            predicted.clone(),
+            Some(&mask),
+        ),
+        (
+            "robust after f32 tiled",
+            predicted.clone(),
+            robust,
+            Some(&mask),
+        ),
+        ("exact after exact", exact_ls(), exact_ls(), None),
+    ];
+    for (what, first, second, mask) in cases {
+        let fresh = solve(&input(mask), &second, &Silent).unwrap();
+        // The previous result covers every pixel (no mask) with different values.
+        let previous = solve(&input(None), &first, &Silent).unwrap();
+        let reused = solve_reusing(&input(mask), &second, &Silent, Some(previous)).unwrap();
+        assert_same(&reused, &fresh, what);
+    }
 }

@@ -259,6 +259,133 @@ fn sample_board(board: &Chessboard, pose: &BoardPose, render: &ViewRender, x: f6
     }
 }
 
+/// Reflectance of the table around a held or lying target (a mid-gray work surface).
+pub const TABLE_REFLECTANCE: f64 = 0.3;
+
+/// The chessboard at `pose` photographed through `grid` on `rig` (the rig as built) with LEDs
+/// `lit` on: linear RGB, 1.0 = the white level at `exposure`. Each board point is lit by
+/// every lit LED (inverse square, beam, incidence on the board); past the board the camera
+/// sees the table, lit the same way (the board's shadow on it is not modelled: only the board
+/// is measured). Lens blur as in [`render_chessboard`]; the sensor adds the noise. With no LED
+/// on the frame is black, as a real one is.
+pub fn render_chessboard_lit(
+    rig: &Rig,
+    grid: &RayGrid,
+    board: &Chessboard,
+    pose: &BoardPose,
+    lit: &[usize],
+    exposure: f64,
+    blur_px: f64,
+) -> RgbPlanes {
+    let (width, height, n) = (grid.width, grid.height, grid.supersample);
+    let world_from_camera = rig.camera.world_from_camera();
+    let eye = rig.camera.centre();
+    let scales: Vec<[f64; 3]> = lit
+        .iter()
+        .map(|&k| {
+            rig.led_rgb_power(k)
+                .map(|c| c / rig.leds[k].power * exposure)
+        })
+        .collect();
+    // The radiance (times the exposure) of a Lambertian point with `normal` and `rho`.
+    let shade = |point: &Vector3<f64>, normal: &Vector3<f64>, rho: f64| -> [f64; 3] {
+        let mut out = [0.0; 3];
+        for (&k, scale) in lit.iter().zip(&scales) {
+            let s = rig.leds[k].sample_at(point);
+            let cos = normal.dot(&s.direction).max(0.0);
+            for c in 0..3 {
+                out[c] += s.falloff * cos * scale[c] * rho;
+            }
+        }
+        out
+    };
+    let table = Vector3::z();
+    let mut planes = [
+        vec![0.0f32; width * height],
+        vec![0.0f32; width * height],
+        vec![0.0f32; width * height],
+    ];
+    let [r, g, b] = &mut planes;
+    r.par_chunks_mut(width)
+        .zip(g.par_chunks_mut(width))
+        .zip(b.par_chunks_mut(width))
+        .enumerate()
+        .for_each(|(y, ((r, g), b))| {
+            for x in 0..width {
+                let start = (y * width + x) * n * n;
+                let mut sum = [0.0f64; 3];
+                for ray in &grid.rays[start..start + n * n] {
+                    let ray = Vector3::new(ray[0] as f64, ray[1] as f64, 1.0);
+                    let world_ray = world_from_camera * ray;
+                    let value = match board_hit(board, pose, &ray) {
+                        Some((t, normal, Some(rho))) => {
+                            let point = eye + world_ray * t;
+                            // The face toward the camera.
+                            let mut normal = world_from_camera * normal;
+                            if normal.dot(&(eye - point)) < 0.0 {
+                                normal = -normal;
+                            }
+                            shade(&point, &normal, rho)
+                        }
+                        _ if world_ray.z < 0.0 => {
+                            let t = (rig.sample.z_m - eye.z) / world_ray.z;
+                            shade(&(eye + world_ray * t), &table, TABLE_REFLECTANCE)
+                        }
+                        _ => [0.0; 3],
+                    };
+                    for c in 0..3 {
+                        sum[c] += value[c];
+                    }
+                }
+                let norm = 1.0 / (n * n) as f64;
+                r[x] = (sum[0] * norm) as f32;
+                g[x] = (sum[1] * norm) as f32;
+                b[x] = (sum[2] * norm) as f32;
+            }
+        });
+    let mut out = RgbPlanes::new(width, height);
+    for (plane, data) in [&mut out.r, &mut out.g, &mut out.b].into_iter().zip(planes) {
+        plane.data = gaussian_blur(&data, width, height, blur_px);
+    }
+    out
+}
+
+/// Where the camera ray `ray` (camera frame, z = 1) meets the board: the ray parameter, the
+/// board's normal there (camera frame) and the print's reflectance (`None` off the paper);
+/// `None` when the ray misses the board's plane.
+fn board_hit(
+    board: &Chessboard,
+    pose: &BoardPose,
+    ray: &Vector3<f64>,
+) -> Option<(f64, Vector3<f64>, Option<f64>)> {
+    let normal = pose.rotation * Vector3::z();
+    let xc = board.centre()[0];
+    let mut bz = 0.0;
+    let mut hit = None;
+    for _ in 0..4 {
+        let origin = pose.translation + pose.rotation * Vector3::new(0.0, 0.0, bz);
+        let denom = normal.dot(ray);
+        if denom.abs() < 1e-12 {
+            return None;
+        }
+        let t = normal.dot(&origin) / denom;
+        if t <= 0.0 {
+            return None;
+        }
+        let b = pose.rotation.inverse() * (ray * t - pose.translation);
+        hit = Some((t, b));
+        if pose.bend == 0.0 {
+            break;
+        }
+        bz = -0.5 * pose.bend * (b.x - xc).powi(2);
+    }
+    let (t, b) = hit?;
+    // The bent surface's normal tilts by its slope -bend * (x - xc) along board x.
+    let slope = -pose.bend * (b.x - xc);
+    let local = Vector3::new(-slope, 0.0, 1.0).normalize();
+    Some((t, pose.rotation * local, board.reflectance(b.x, b.y)))
+}
+
 /// Separable Gaussian blur with clamped edges.
 fn gaussian_blur(data: &[f32], width: usize, height: usize, sigma: f64) -> Vec<f32> {
     if sigma <= 0.0 {
@@ -603,6 +730,25 @@ pub fn flat_target_frames(
     }
 }
 
+/// The reflectance of `chart` lying on the table with its patches filling the world
+/// rectangle `[x0, x1, y0, y1]` (metres; row 0 at the top of the image, world +y), on a dark
+/// mount (0.2) around it.
+pub fn gray_chart(
+    chart: &crate::calibration::graychart::ChartDescription,
+    world: [f64; 4],
+) -> impl Fn(f64, f64) -> [f64; 3] + Sync + '_ {
+    let [x0, x1, y0, y1] = world;
+    let (rows, cols) = (chart.rows, chart.cols);
+    move |x: f64, y: f64| {
+        if x < x0 || x >= x1 || y < y0 || y >= y1 {
+            return [0.2; 3];
+        }
+        let c = (((x - x0) / (x1 - x0)) * cols as f64) as usize;
+        let r = (((y1 - y) / (y1 - y0)) * rows as f64) as usize;
+        [chart.reflectance[r.min(rows - 1) * cols + c.min(cols - 1)]; 3]
+    }
+}
+
 /// The gray chart (`chart`'s patches filling the world rectangle `x0..x1`, `y0..y1` on the
 /// table, metres) photographed under each LED as raw RGGB mosaics of a `width x height` window
 /// centred on the sensor, every `step` pixels, at `exposure`; and the chart's rectangle in the
@@ -626,16 +772,7 @@ pub fn gray_chart_mosaics(
         step,
     );
     let [x0, x1, y0, y1] = world;
-    let (rows, cols) = (chart.rows, chart.cols);
-    let reflectance = |x: f64, y: f64| {
-        if x < x0 || x >= x1 || y < y0 || y >= y1 {
-            return [0.2; 3];
-        }
-        let c = (((x - x0) / (x1 - x0)) * cols as f64) as usize;
-        // Row 0 at the top of the image: world +y.
-        let r = (((y1 - y) / (y1 - y0)) * rows as f64) as usize;
-        [chart.reflectance[r.min(rows - 1) * cols + c.min(cols - 1)]; 3]
-    };
+    let reflectance = gray_chart(chart, world);
     let pattern = [[0u8, 1], [1, 2]];
     let black = rig.sensor.black_level as f32;
     let mosaics = (0..rig.leds.len())

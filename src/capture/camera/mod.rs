@@ -1,11 +1,13 @@
 //! Cameras the sequencer can fire: a tethered DSLR through libgphoto2 (feature `gphoto2`),
 //! any external command that takes a photograph into a file, and a simulated camera that
-//! renders the synthetic textile lit by whichever LEDs are actually on.
+//! renders the synthetic textile lit by whichever LEDs are actually on, and its sibling that
+//! photographs the calibration targets the same way.
 
 pub mod command;
 #[cfg(feature = "gphoto2")]
 pub mod gphoto;
 pub mod sim;
+pub mod targets;
 
 use std::path::Path;
 use std::time::Duration;
@@ -20,6 +22,7 @@ use crate::rig::Rig;
 
 pub use command::CommandCamera;
 pub use sim::{LitSource, SimCamera, SimOutput};
+pub use targets::{Placement, Stage, Target, TargetCamera};
 
 use crate::error::Result;
 
