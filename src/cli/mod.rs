@@ -57,7 +57,7 @@ enum Command {
     /// Calibrate the rig: without a subcommand, the wizard (camera, table, white sheet, flatness
     /// check; resumable); `calibrate camera|table|graychart|whitesheet` runs one step over
     /// photographs, `calibrate bundle` assembles their results.
-    Calibrate(calibrate::CalibrateArgs),
+    Calibrate(Box<calibrate::CalibrateArgs>),
     /// Benchmark every solver variant on standard synthetic scenes: run time against error,
     /// beside the memory-read floor and a NumPy peer.
     Bench(BenchArgs),
