@@ -649,6 +649,31 @@ fn graychart_cli_over_dng_files_gives_the_sensor_gains_linearity_and_clipped_pat
         toml::from_str(&std::fs::read_to_string(&out_file).unwrap()).unwrap();
     assert_eq!(written.lights.len(), rig.leds.len());
 
+    // Without --rect the chart is found in the photographs: close to the true rectangle
+    // (the search works on 2x2 CFA cells) and the same gains.
+    let mut args = base.to_vec();
+    args.truncate(6);
+    args.extend(["--step", "2", "--json", "-q"]);
+    let found = json(&psscan(&args));
+    let r = &found["rect"];
+    let given: Vec<f64> = rect.split(',').map(|x| x.parse().unwrap()).collect();
+    let patch_w = given[2] / chart.cols as f64;
+    println!("chart found at {r} (given {given:?}, patch width {patch_w:.1} px)");
+    assert_eq!(r["found"], true);
+    for (key, want) in ["x", "y", "width", "height"].iter().zip(&given) {
+        // Within a tenth of a patch: the sampled centre half of each patch stays inside it.
+        assert!(
+            (r[key].as_f64().unwrap() - want).abs() < 0.1 * patch_w,
+            "{key}: {r}"
+        );
+    }
+    for (k, light) in found["lights"].as_array().unwrap().iter().enumerate() {
+        for c in 0..3 {
+            let wb = light["white_balance"][c].as_f64().unwrap();
+            assert!((wb / expected[c] - 1.0).abs() < 0.005, "light {k}: {wb}");
+        }
+    }
+
     // Overexposed: the brightest patch clips under the overhead LEDs; flagged, left out.
     let bright = tmp.path().join("bright");
     let (_, rect) = write_chart_dngs(&rig, &chart, 1.8, &bright);

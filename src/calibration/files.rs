@@ -247,7 +247,14 @@ pub fn rig_with_camera(
     pose: &super::table::TablePose,
 ) -> Result<Rig> {
     let i = &camera.intrinsics;
-    let window = image_window(rig, (i.width, i.height), None)?;
+    let window = image_window(rig, (i.width, i.height), None).map_err(|_| {
+        Error::Invalid(format!(
+            "the camera step's photographs are {}x{}, which is neither rig \"{}\"'s {}x{} \
+             sensor nor a binned copy of it: calibrate the camera on full-sensor (or evenly \
+             binned) photographs",
+            i.width, i.height, rig.name, rig.camera.width, rig.camera.height
+        ))
+    })?;
     let sensor = i.to_sensor(
         window,
         (rig.camera.width as usize, rig.camera.height as usize),
@@ -307,5 +314,77 @@ mod tests {
             err.contains("2 white-sheet photographs (L00.exr, L01.exr)") && err.contains("10 LEDs"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn exr_png16_and_dng_files_load_as_the_same_linear_light() {
+        let tmp = tempfile::tempdir().unwrap();
+        let rig = Rig::default_rig();
+        let levels = Levels::from_sensor(&rig.sensor);
+        let window = SensorWindow::centred(4928, 3264, 64, 48, 8.0);
+        let sheet = crate::synth::targets::white_sheet(0.9, 0.0, 1);
+        let linear =
+            crate::synth::targets::render_flat_target(&rig, window, 64, 48, 6, 1.0, &sheet);
+        // 16-bit PNG of raw numbers, no noise: within one digital number of the light.
+        let dn = crate::synth::expose(&linear, &rig.sensor, crate::synth::Noise::Off, 0);
+        let png = tmp.path().join("L06.png");
+        std::fs::write(&png, crate::raw::encode_png16(&dn).unwrap()).unwrap();
+        let from_png = load_linear(&png, &levels).unwrap();
+        let quantum = 1.0 / (levels.white - levels.black) as f32;
+        for (a, b) in from_png.rgb.g.data.iter().zip(&linear.g.data) {
+            assert!((a - b).abs() <= quantum, "{a} {b}");
+        }
+        // EXR: exactly what was written, and clipped values flagged.
+        let exr = tmp.path().join("L06.exr");
+        let mut bright = from_png.rgb.clone();
+        bright.g.data[5] = 1.0;
+        crate::maps::write::write_exr(
+            &exr,
+            &[("R", &bright.r), ("G", &bright.g), ("B", &bright.b)],
+        )
+        .unwrap();
+        let from_exr = load_linear(&exr, &levels).unwrap();
+        assert_eq!(from_exr.rgb.g.data, bright.g.data);
+        let flags = from_exr.saturated.unwrap();
+        assert!(flags.data[5] && flags.count() == 1);
+        // A DNG of the same light (RGGB mosaic, demosaiced at full resolution): its green
+        // agrees with the rendered light to the demosaic's interpolation on a smooth field.
+        let mosaic = Mosaic {
+            width: 64,
+            height: 48,
+            pattern: [[0, 1], [1, 2]],
+            black: [[rig.sensor.black_level as f32; 2]; 2],
+            white: rig.sensor.white_level as f32,
+            samples: crate::synth::expose_mosaic(
+                &linear,
+                [[0, 1], [1, 2]],
+                &rig.sensor,
+                crate::synth::Noise::Off,
+                0,
+            ),
+        };
+        let meta = crate::raw::RawMeta {
+            make: "psscan".into(),
+            model: "test".into(),
+            width: 64,
+            height: 48,
+            iso: None,
+            shutter_s: None,
+            aperture: None,
+        };
+        let dng = tmp.path().join("L06.dng");
+        let bytes = crate::raw::encode_dng(
+            &mosaic,
+            &meta,
+            rig.sensor.bits,
+            rig.sensor.channel_gain,
+            crate::raw::DngStorage::Lossless,
+        )
+        .unwrap();
+        std::fs::write(&dng, bytes).unwrap();
+        let from_dng = load_linear(&dng, &levels).unwrap();
+        let centre = 24 * 64 + 32;
+        let rel = from_dng.rgb.g.data[centre] / linear.g.data[centre] - 1.0;
+        assert!(rel.abs() < 0.002, "{rel}");
     }
 }

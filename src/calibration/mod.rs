@@ -6,6 +6,7 @@
 pub mod bundle;
 pub mod camera;
 pub mod capture;
+pub mod chartfind;
 pub mod cv;
 pub mod files;
 pub mod graychart;

@@ -156,16 +156,10 @@ pub struct ChartInputs<'a> {
     pub step: Option<f64>,
 }
 
-/// Per light, white balance and linearity from RAW photographs of the chart, one per LED.
-pub fn graychart_from_files(inputs: &ChartInputs) -> Result<ChartReport> {
+/// Per light, white balance and linearity from RAW photographs of the chart, one per LED;
+/// with the rectangle used (found in the photographs when none was given: `true`).
+pub fn graychart_from_files(inputs: &ChartInputs) -> Result<(ChartReport, ChartRect, bool)> {
     files::check_light_count(inputs.files, inputs.rig, "gray-chart")?;
-    let rect = inputs.rect.ok_or_else(|| {
-        Error::Unsupported(
-            "--rect X,Y,W,H is needed: automatic detection of the chart is not built yet; \
-             give the chart's outer rectangle in image pixels"
-                .into(),
-        )
-    })?;
     let mut size = None;
     let mut mosaics = Vec::with_capacity(inputs.files.len());
     for path in inputs.files {
@@ -174,12 +168,17 @@ pub fn graychart_from_files(inputs: &ChartInputs) -> Result<ChartReport> {
         mosaics.push(m);
     }
     let size = size.expect("one photograph per LED");
+    let (rect, found) = match inputs.rect {
+        Some(r) => (r, false),
+        None => (super::chartfind::find(&mosaics, inputs.chart)?, true),
+    };
     let window = files::image_window(inputs.rig, size, inputs.step)?;
     let shading = Shading {
         rig: inputs.rig,
         window,
     };
-    graychart::calibrate(&mosaics, inputs.chart, &rect, Some(&shading))
+    let report = graychart::calibrate(&mosaics, inputs.chart, &rect, Some(&shading))?;
+    Ok((report, rect, found))
 }
 
 /// The white sheet's flatness re-solved with the fitted lights, from the same photographs.

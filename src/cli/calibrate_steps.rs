@@ -87,7 +87,8 @@ pub struct GraychartArgs {
     /// or `munsell-12` for the built-in Munsell N2-N9.5 scale.
     #[arg(long, value_name = "CHART.toml")]
     chart: PathBuf,
-    /// The chart's outer rectangle in image pixels: left, top, width, height.
+    /// The chart's outer rectangle in image pixels: left, top, width, height (default: found
+    /// in the photographs; the chart must lie square to the image, its first row at the top).
     #[arg(long, value_name = "X,Y,W,H")]
     rect: Option<String>,
     #[command(flatten)]
@@ -217,7 +218,7 @@ pub fn graychart(args: &GraychartArgs, json: bool) -> anyhow::Result<()> {
     let rect = args.rect.as_deref().map(parse_rect).transpose()?;
     let rig = args.rig.rig()?;
     let files = files::list_images(&args.images, &RAW_EXTENSIONS, "RAW photographs")?;
-    let report = steps::graychart_from_files(&steps::ChartInputs {
+    let (report, rect, found) = steps::graychart_from_files(&steps::ChartInputs {
         files: &files,
         chart: &chart,
         rect,
@@ -227,10 +228,23 @@ pub fn graychart(args: &GraychartArgs, json: bool) -> anyhow::Result<()> {
     if let Some(out) = &args.out {
         write_toml(out, &report)?;
     }
+    let (w, h) = (rect.x1 - rect.x0, rect.y1 - rect.y0);
     if json {
-        print_json(&report);
+        let mut v = serde_json::to_value(&report)?;
+        v["rect"] = serde_json::json!({"x": rect.x0, "y": rect.y0, "width": w, "height": h, "found": found});
+        print_json(&v);
         return Ok(());
     }
+    println!(
+        "chart rectangle {:.1},{:.1},{w:.1},{h:.1} (X,Y,W,H in image pixels{})",
+        rect.x0,
+        rect.y0,
+        if found {
+            ", found in the photographs"
+        } else {
+            ""
+        }
+    );
     print_chart(&report, &files);
     Ok(())
 }
