@@ -77,7 +77,7 @@ struct BenchArgs {
     /// Do not run the NumPy peer even when python3 and numpy are present.
     #[arg(long)]
     no_numpy: bool,
-    /// Only what the speed targets need (minutes, not most of an hour at 16 MP): the
+    /// Only what the speed targets need (a fraction of the full run): the
     /// Lambertian scene, the memory-read floor, the `fast f32 tiled` variants (fresh and
     /// reused outputs, normal-only), the NumPy peer and peak memory.
     #[arg(long)]
