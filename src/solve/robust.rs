@@ -111,6 +111,8 @@ pub(super) struct Buffers {
     darker: Vec<Measurement>,
     /// The original readings while the sheen-corrected ones are tested.
     sheen: Vec<Measurement>,
+    /// All usable lights while the sheen rejection alternates with the sheen fit.
+    usable: Vec<Measurement>,
 }
 
 /// True when `n_lum` predicts a positive reading for every light.
@@ -176,21 +178,81 @@ pub(super) fn refine(
     if lambertian {
         return all_lights;
     }
-    // Outliers under the sheen model: the Lambertian tests on the readings with the lobe (at
-    // the all-lights sheen normal) taken out, then the sheen fit on the lights kept.
-    let kept = match sheen_normal {
-        Some(n) => sheen_rejection(context, model, &n, measurements, buffers),
-        None => None,
-    };
-    let Some(kept) = kept else {
+    // Outliers under the sheen model: the Lambertian tests on the readings with the lobe taken
+    // out, then the sheen fit on the lights kept.
+    let Some(normal) = sheen_normal else {
         return lambertian_rejection(context, measurements, buffers, start, condition)
             .unwrap_or(least_squares);
     };
-    let lambert_statistic = chi.statistic(measurements, &kept.n_lum);
-    match sheen::fit(model, context, measurements, &kept) {
-        Some((fit, statistic)) if context.force_sheen || statistic < lambert_statistic => fit,
-        _ => kept,
+    match sheen_alternation(context, model, normal, measurements, buffers) {
+        Some(fit) => fit,
+        None => lambertian_rejection(context, measurements, buffers, start, condition)
+            .unwrap_or(least_squares),
     }
+}
+
+/// At most this many rounds of lobe removal, rejection and sheen refit. Each round's normal
+/// comes from lights the previous round kept, so the kept set settles in one or two rounds.
+const SHEEN_ROUNDS: usize = 3;
+
+/// Alternates rejection under the sheen model with the sheen fit. The first lobe is removed at
+/// `normal`, the sheen fit of all lights, which cast-shadowed lights bias: the removed lobe is
+/// then wrong for the lights whose half vector is near that normal, and the rejection keeps or
+/// drops lights by a wrong residual. Each next round removes the lobe at the normal fitted to
+/// the kept lights (the maximum-likelihood normal for the lights the model holds on), until the
+/// kept set stops changing. Leaves the returned fit's lights in `measurements`; `None`, with
+/// all lights restored, when the first rejection finds no solution.
+fn sheen_alternation(
+    context: &Context,
+    model: &SheenModel,
+    mut normal: Vector3<f64>,
+    measurements: &mut Vec<Measurement>,
+    buffers: &mut Buffers,
+) -> Option<Fit> {
+    let chi = context.kernel.chi_square();
+    let mut all = std::mem::take(&mut buffers.usable);
+    all.clear();
+    all.extend_from_slice(measurements);
+    let mut result: Option<(Fit, u64)> = None;
+    for _ in 0..SHEEN_ROUNDS {
+        measurements.clear();
+        measurements.extend_from_slice(&all);
+        let Some(kept) = sheen_rejection(context, model, &normal, measurements, buffers) else {
+            break;
+        };
+        let mask = light_mask(measurements);
+        let lambert_statistic = chi.statistic(measurements, &kept.n_lum);
+        let fit = match sheen::fit(model, context, measurements, &kept) {
+            Some((fit, statistic)) if context.force_sheen || statistic < lambert_statistic => fit,
+            _ => kept,
+        };
+        let settled = result
+            .as_ref()
+            .is_some_and(|(_, previous)| *previous == mask);
+        let next = fit.n_lum.try_normalize(1e-12);
+        result = Some((fit, mask));
+        match next {
+            Some(n) if !settled => normal = n,
+            _ => break,
+        }
+    }
+    // Leave the returned fit's lights (or, without one, all lights) in `measurements`.
+    measurements.clear();
+    match &result {
+        Some((_, mask)) => {
+            measurements.extend(all.iter().filter(|m| mask & (1u64 << m.light) != 0))
+        }
+        None => measurements.extend_from_slice(&all),
+    }
+    buffers.usable = all;
+    result.map(|(fit, _)| fit)
+}
+
+/// The lights of `measurements` as a mask of their indices (all below 64).
+fn light_mask(measurements: &[Measurement]) -> u64 {
+    measurements
+        .iter()
+        .fold(0, |mask, m| mask | 1u64 << m.light)
 }
 
 /// Rejection under the Lambertian model; leaves the kept lights in `measurements`.
@@ -232,9 +294,7 @@ fn sheen_rejection(
         .and_then(|start| reject_outliers(context, measurements, buffers, start));
     let kept = outcome.map(|_| {
         let rejected = measurements.len() < originals.len();
-        let kept_lights: u64 = measurements
-            .iter()
-            .fold(0, |mask, m| mask | 1u64 << m.light);
+        let kept_lights = light_mask(measurements);
         measurements.clear();
         measurements.extend(
             originals
