@@ -200,12 +200,15 @@ const SHEEN_ROUNDS: usize = 3;
 /// then wrong for the lights whose half vector is near that normal, and the rejection keeps or
 /// drops lights by a wrong residual. Each next round removes the lobe at the normal fitted to
 /// the kept lights (the maximum-likelihood normal for the lights the model holds on), until the
-/// kept set stops changing. Leaves the returned fit's lights in `measurements`; `None`, with
-/// all lights restored, when the first rejection finds no solution.
+/// kept set stops changing. A second alternation starts from the Lambertian rejection's normal
+/// (cast shadows screened before any lobe is fitted); of the two, the one whose lights pass the
+/// chi-square test wins, then the one with more lights (the ranking of `reject_outliers`).
+/// Leaves the returned fit's lights in `measurements`; `None`, with all lights restored, when
+/// neither alternation finds a solution.
 fn sheen_alternation(
     context: &Context,
     model: &SheenModel,
-    mut normal: Vector3<f64>,
+    normal: Vector3<f64>,
     measurements: &mut Vec<Measurement>,
     buffers: &mut Buffers,
 ) -> Option<Fit> {
@@ -213,39 +216,84 @@ fn sheen_alternation(
     let mut all = std::mem::take(&mut buffers.usable);
     all.clear();
     all.extend_from_slice(measurements);
-    let mut result: Option<(Fit, u64)> = None;
+    let from_all = alternate(context, model, normal, &all, measurements, buffers);
+    // Second start: the normal of the Lambertian rejection, which screens the cast shadows
+    // (darker than the fit) before any lobe is fitted.
+    measurements.clear();
+    measurements.extend_from_slice(&all);
+    let screened = weighted_fit(chi, measurements)
+        .and_then(|start| lambertian_rejection(context, measurements, buffers, start, 1.0))
+        .and_then(|fit| fit.n_lum.try_normalize(1e-12))
+        .and_then(|n| alternate(context, model, n, &all, measurements, buffers));
+    let rank = |c: &Candidate| {
+        let lights = c.mask.count_ones() as usize;
+        let passes = chi.accepts_statistic(c.statistic, lights);
+        let score = if passes {
+            lights as f64
+        } else {
+            -c.statistic / lights.saturating_sub(3).max(1) as f64
+        };
+        (passes, score)
+    };
+    let result = match (from_all, screened) {
+        (Some(a), Some(b)) => Some(if rank(&b) > rank(&a) { b } else { a }),
+        (a, b) => a.or(b),
+    };
+    // Leave the returned fit's lights (or, without one, all lights) in `measurements`.
+    measurements.clear();
+    match &result {
+        Some(c) => measurements.extend(all.iter().filter(|m| c.mask & (1u64 << m.light) != 0)),
+        None => measurements.extend_from_slice(&all),
+    }
+    buffers.usable = all;
+    result.map(|c| c.fit)
+}
+
+/// One alternation's outcome: the fit, its chi-square statistic and its lights.
+struct Candidate {
+    fit: Fit,
+    statistic: f64,
+    mask: u64,
+}
+
+/// The alternation from `normal` over the lights `all`; `measurements` is scratch.
+fn alternate(
+    context: &Context,
+    model: &SheenModel,
+    mut normal: Vector3<f64>,
+    all: &[Measurement],
+    measurements: &mut Vec<Measurement>,
+    buffers: &mut Buffers,
+) -> Option<Candidate> {
+    let chi = context.kernel.chi_square();
+    let mut result: Option<Candidate> = None;
     for _ in 0..SHEEN_ROUNDS {
         measurements.clear();
-        measurements.extend_from_slice(&all);
+        measurements.extend_from_slice(all);
         let Some(kept) = sheen_rejection(context, model, &normal, measurements, buffers) else {
             break;
         };
         let mask = light_mask(measurements);
         let lambert_statistic = chi.statistic(measurements, &kept.n_lum);
-        let fit = match sheen::fit(model, context, measurements, &kept) {
-            Some((fit, statistic)) if context.force_sheen || statistic < lambert_statistic => fit,
-            _ => kept,
+        let (fit, statistic) = match sheen::fit(model, context, measurements, &kept) {
+            Some((fit, statistic)) if context.force_sheen || statistic < lambert_statistic => {
+                (fit, statistic)
+            }
+            _ => (kept, lambert_statistic),
         };
-        let settled = result
-            .as_ref()
-            .is_some_and(|(_, previous)| *previous == mask);
+        let settled = result.as_ref().is_some_and(|c| c.mask == mask);
         let next = fit.n_lum.try_normalize(1e-12);
-        result = Some((fit, mask));
+        result = Some(Candidate {
+            fit,
+            statistic,
+            mask,
+        });
         match next {
             Some(n) if !settled => normal = n,
             _ => break,
         }
     }
-    // Leave the returned fit's lights (or, without one, all lights) in `measurements`.
-    measurements.clear();
-    match &result {
-        Some((_, mask)) => {
-            measurements.extend(all.iter().filter(|m| mask & (1u64 << m.light) != 0))
-        }
-        None => measurements.extend_from_slice(&all),
-    }
-    buffers.usable = all;
-    result.map(|(fit, _)| fit)
+    result
 }
 
 /// The lights of `measurements` as a mask of their indices (all below 64).
