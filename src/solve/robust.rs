@@ -212,6 +212,11 @@ fn sheen_alternation(
     measurements: &mut Vec<Measurement>,
     buffers: &mut Buffers,
 ) -> Option<Fit> {
+    // The alternation tracks lights as bits of a u64 (the sheen fit takes at most 64 lights);
+    // a light numbered past that leaves the pixel to the Lambertian rejection.
+    if measurements.iter().any(|m| u32::from(m.light) >= u64::BITS) {
+        return None;
+    }
     let chi = context.kernel.chi_square();
     let mut all = std::mem::take(&mut buffers.usable);
     all.clear();
