@@ -237,14 +237,7 @@ fn open_source(
     }
     let interrupt = interrupt_on_ctrl_c()?;
     let controller = Controller::open(&args.port, args.pin_log.as_deref())?;
-    let camera = args.camera.clone().unwrap_or_else(|| {
-        if args.port.firmware_sim {
-            "sim"
-        } else {
-            "gphoto2"
-        }
-        .to_string()
-    });
+    let camera = args.port.camera_or_default(&args.camera);
     let (camera, sim): (Box<dyn Camera>, _) = if camera == "sim" {
         let lit: Box<dyn LitSource> = match (&controller.emulated, &args.pin_log) {
             (Some(emulated), _) => Box::new(emulated.pin_log()),

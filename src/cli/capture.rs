@@ -52,6 +52,16 @@ pub struct PortArgs {
 }
 
 impl PortArgs {
+    /// The camera named on the command line, or the default for this port: the simulated
+    /// camera with the firmware emulator, the tethered one on hardware.
+    pub(super) fn camera_or_default(&self, camera: &Option<String>) -> String {
+        camera
+            .clone()
+            .unwrap_or_else(|| if self.firmware_sim { "sim" } else { "gphoto2" }.to_string())
+    }
+}
+
+impl PortArgs {
     fn serial_options(&self) -> SerialOptions {
         SerialOptions {
             ready_wait: self.ready_wait_ms.map(Duration::from_millis),
@@ -178,14 +188,7 @@ pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()
         calibration: bundle.as_ref().map(|b| b.citation()),
     };
     let shot_timeout = Duration::from_secs_f64(args.shot_timeout_s.max(0.1));
-    let camera = args.camera.clone().unwrap_or_else(|| {
-        if args.port.firmware_sim {
-            "sim"
-        } else {
-            "gphoto2"
-        }
-        .to_string()
-    });
+    let camera = args.port.camera_or_default(&args.camera);
     let report = if camera == "sim" {
         let source: Box<dyn LitSource> = match (&controller.emulated, &args.pin_log) {
             (Some(emulated), _) => Box::new(emulated.pin_log()),
