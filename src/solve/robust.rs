@@ -7,8 +7,10 @@
 //! matrix, `h_k = l_k^T (L^T L)^-1 l_k` is light `k`'s leverage, and `r_k / (s_k sqrt(1 - h_k))`
 //! is its residual in units of its own standard deviation under the noise model. The light
 //! furthest out is dropped and the rest refitted, until no light is an outlier at
-//! `outlier_sigma` or only `max(4, (1 - max_rejected_fraction) m)` lights are left. Lights
-//! that agree are all kept, so on clean data the robust fit is least squares.
+//! `outlier_sigma` or only `max(4, (1 - max_rejected_fraction) m)` lights are left. A second
+//! pass drops only lights darker than the fit (cast shadows), down to 4 lights whatever the
+//! fraction: in a crevice most lights can be shadowed. Lights that agree are all kept, so on
+//! clean data the robust fit is least squares.
 //!
 //! Why this scheme (measured, see README "Estimators"): thresholding the darkest and brightest
 //! readings drops good lights wherever the normal tilts toward one side of the rig, and
@@ -33,8 +35,9 @@ pub struct RobustOptions {
     pub significance_sigma: f64,
     /// A light whose studentised residual exceeds this many standard deviations is an outlier.
     pub outlier_sigma: f64,
-    /// At most this fraction of a pixel's usable lights may be rejected (4 are always kept,
-    /// so that the result can still be tested).
+    /// At most this fraction of a pixel's usable lights may be rejected as outliers either
+    /// way (4 are always kept, so that the result can still be tested); the pass that rejects
+    /// only darker lights (cast shadows) may go down to 4.
     pub max_rejected_fraction: f64,
     /// Model error of real surfaces, as a fraction of the signal, added in quadrature to the
     /// sensor noise in both tests (0: the noise model alone decides).
@@ -429,7 +432,12 @@ fn reject(
     let options = context.kernel.options();
     let chi = context.kernel.chi_square();
     let usable = measurements.len();
-    let keep = ((1.0 - options.robust.max_rejected_fraction) * usable as f64).ceil() as usize;
+    // The darker-only pass may reject past `max_rejected_fraction`: in a crevice most lights
+    // are cast-shadowed, and only the lit ones, however few, give the normal.
+    let keep = match rule {
+        Rule::Any => ((1.0 - options.robust.max_rejected_fraction) * usable as f64).ceil() as usize,
+        Rule::DarkerOnly => 0,
+    };
     // Four lights at least: three fit any normal exactly, so a rejection that left three
     // could not be checked, and with four every single removal fits exactly and which light
     // was the outlier is undecidable.
