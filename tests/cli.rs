@@ -2,40 +2,18 @@
 //! output, exit codes, and the errors an operator sees for bad input.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
+mod common;
+
+use common::{json, psscan, s, stderr};
 use serde_json::Value;
-
-fn psscan(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_psscan"))
-        .args(args)
-        .output()
-        .expect("psscan runs")
-}
-
-fn json(output: &Output) -> Value {
-    assert!(
-        output.status.success(),
-        "psscan failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    serde_json::from_slice(&output.stdout).expect("stdout is JSON")
-}
-
-fn stderr(output: &Output) -> String {
-    String::from_utf8_lossy(&output.stderr).into_owned()
-}
-
-fn path_str(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 /// A small synthetic set covering the whole field (every 16th sensor pixel).
 fn synth_set(dir: &Path) {
     let out = psscan(&[
         "synth",
         "--out",
-        path_str(dir),
+        s(dir),
         "--width",
         "256",
         "--height",
@@ -59,13 +37,7 @@ fn synth_then_solve_reports_errors_that_match_the_noise_model() {
     let set = tmp.path().join("set");
     let maps = tmp.path().join("maps");
     synth_set(&set);
-    let report = json(&psscan(&[
-        "solve",
-        path_str(&set),
-        "--out",
-        path_str(&maps),
-        "--json",
-    ]));
+    let report = json(&psscan(&["solve", s(&set), "--out", s(&maps), "--json"]));
     let measured = report["truth"]["normal_error_deg"]["mean"]
         .as_f64()
         .unwrap();
@@ -93,17 +65,10 @@ fn synth_then_solve_reports_errors_that_match_the_noise_model() {
     assert_eq!(written["truth"], report["truth"]);
 
     // An existing solve is not overwritten without --force.
-    let again = psscan(&["solve", path_str(&set), "--out", path_str(&maps)]);
+    let again = psscan(&["solve", s(&set), "--out", s(&maps)]);
     assert_eq!(again.status.code(), Some(1));
     assert!(stderr(&again).contains("--force"), "{}", stderr(&again));
-    let forced = psscan(&[
-        "solve",
-        path_str(&set),
-        "--out",
-        path_str(&maps),
-        "--force",
-        "-q",
-    ]);
+    let forced = psscan(&["solve", s(&set), "--out", s(&maps), "--force", "-q"]);
     assert!(forced.status.success(), "{}", stderr(&forced));
 }
 
@@ -114,18 +79,12 @@ fn normal_png_matches_the_exr_and_directx_flips_green() {
     synth_set(&set);
     let gl = tmp.path().join("gl");
     let dx = tmp.path().join("dx");
+    json(&psscan(&["solve", s(&set), "--out", s(&gl), "--json"]));
     json(&psscan(&[
         "solve",
-        path_str(&set),
+        s(&set),
         "--out",
-        path_str(&gl),
-        "--json",
-    ]));
-    json(&psscan(&[
-        "solve",
-        path_str(&set),
-        "--out",
-        path_str(&dx),
+        s(&dx),
         "--directx",
         "--json",
     ]));
@@ -154,7 +113,7 @@ fn demo_json_has_the_documented_fields_and_writes_every_map() {
     let summary = json(&psscan(&[
         "demo",
         "--out",
-        path_str(&out),
+        s(&out),
         "--width",
         "320",
         "--height",
@@ -188,7 +147,7 @@ fn demo_json_has_the_documented_fields_and_writes_every_map() {
     let again = psscan(&[
         "demo",
         "--out",
-        path_str(&out),
+        s(&out),
         "--width",
         "64",
         "--height",
@@ -203,12 +162,7 @@ fn demo_json_has_the_documented_fields_and_writes_every_map() {
 fn bad_input_gives_a_clear_error_and_exit_code_1() {
     let tmp = tempfile::tempdir().unwrap();
     let missing = tmp.path().join("no-such-set");
-    let out = psscan(&[
-        "solve",
-        path_str(&missing),
-        "--out",
-        path_str(&tmp.path().join("o")),
-    ]);
+    let out = psscan(&["solve", s(&missing), "--out", s(&tmp.path().join("o"))]);
     assert_eq!(out.status.code(), Some(1));
     assert!(stderr(&out).contains("no-such-set") && stderr(&out).contains("not a capture set"));
 
@@ -220,12 +174,7 @@ fn bad_input_gives_a_clear_error_and_exit_code_1() {
     let n = bytes.len();
     bytes[n / 2] ^= 0x40;
     std::fs::write(&frame, bytes).unwrap();
-    let out = psscan(&[
-        "solve",
-        path_str(&set),
-        "--out",
-        path_str(&tmp.path().join("o")),
-    ]);
+    let out = psscan(&["solve", s(&set), "--out", s(&tmp.path().join("o"))]);
     assert_eq!(out.status.code(), Some(1));
     assert!(
         stderr(&out).contains("L03.png") && stderr(&out).contains("SHA-256"),
@@ -245,9 +194,9 @@ fn bad_input_gives_a_clear_error_and_exit_code_1() {
     let out = psscan(&[
         "synth",
         "--out",
-        path_str(&tmp.path().join("s2")),
+        s(&tmp.path().join("s2")),
         "--rig",
-        path_str(&rig),
+        s(&rig),
     ]);
     assert_eq!(out.status.code(), Some(1));
     assert!(stderr(&out).contains("camera.fx"), "{}", stderr(&out));
@@ -262,15 +211,7 @@ fn an_existing_capture_set_is_not_overwritten_without_force() {
     let set = tmp.path().join("set");
     synth_set(&set);
     let before = std::fs::read(set.join("manifest.toml")).unwrap();
-    let out = psscan(&[
-        "synth",
-        "--out",
-        path_str(&set),
-        "--width",
-        "32",
-        "--height",
-        "32",
-    ]);
+    let out = psscan(&["synth", "--out", s(&set), "--width", "32", "--height", "32"]);
     assert_eq!(out.status.code(), Some(1));
     assert!(stderr(&out).contains("--force"));
     assert_eq!(std::fs::read(set.join("manifest.toml")).unwrap(), before);

@@ -5,8 +5,13 @@
 //! bundle they assemble; and its citation by capture manifests and solve reports.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+#[cfg(feature = "opencv")]
+use std::process::Command;
+use std::process::Output;
 
+mod common;
+
+use common::{psscan, s};
 use psscan::calibration::graychart::{self, ChartDescription, Shading};
 use psscan::calibration::steps::WhiteSheetStep;
 use psscan::plane::{Frames, SensorWindow};
@@ -15,13 +20,6 @@ use psscan::rig::Rig;
 use psscan::synth::targets;
 #[cfg(feature = "opencv")]
 use std::time::{Duration, Instant};
-
-fn psscan(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_psscan"))
-        .args(args)
-        .output()
-        .expect("psscan runs")
-}
 
 #[cfg(not(feature = "opencv"))]
 #[test]
@@ -466,10 +464,6 @@ fn gphoto_wizard_capture_without_a_camera_says_so() {
             "{err}"
         );
     }
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 fn ok(out: &Output) -> String {

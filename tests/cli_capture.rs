@@ -4,36 +4,15 @@
 //! missing camera or a failing camera command give.
 
 use std::path::Path;
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use psscan::capture::emulator::{Emulator, EmulatorFiles};
 use psscan::capture::CaptureSet;
+mod common;
+
+use common::{json, psscan, s, stderr};
 use serde_json::Value;
-
-fn psscan(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_psscan"))
-        .args(args)
-        .output()
-        .expect("psscan runs")
-}
-
-fn json(output: &Output) -> Value {
-    assert!(
-        output.status.success(),
-        "psscan failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    serde_json::from_slice(&output.stdout).expect("stdout is JSON")
-}
-
-fn stderr(output: &Output) -> String {
-    String::from_utf8_lossy(&output.stderr).into_owned()
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 fn emulator(dir: &Path) -> Emulator {
     let files = EmulatorFiles::locate().expect("make -C firmware all sim");

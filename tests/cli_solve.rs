@@ -5,34 +5,12 @@
 //! the same frames, with bounds from the noise model or from geometry, not from a past run.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 use std::sync::OnceLock;
 
+mod common;
+
+use common::{json, psscan, s, stderr};
 use serde_json::Value;
-
-fn psscan(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_psscan"))
-        .args(args)
-        .output()
-        .expect("psscan runs")
-}
-
-fn json(output: &Output) -> Value {
-    assert!(
-        output.status.success(),
-        "psscan failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    serde_json::from_slice(&output.stdout).expect("stdout is JSON")
-}
-
-fn stderr(output: &Output) -> String {
-    String::from_utf8_lossy(&output.stderr).into_owned()
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 /// Width and height of the synthetic sets: every 16th sensor pixel over the whole field.
 const W: usize = 256;

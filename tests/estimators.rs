@@ -96,14 +96,9 @@ fn render_with(
     Rendered { scene, frames }
 }
 
-/// The material's sheen lobe as the solver's model (the same one the renderer used).
+/// The material's sheen lobe as the solver's model (the renderer's own type and values).
 fn sheen_model() -> SheenModel {
-    let s = Sheen::default();
-    SheenModel {
-        f0: s.f0,
-        alpha: s.alpha,
-        amplitude: s.amplitude,
-    }
+    Sheen::default()
 }
 
 fn options(estimator: Estimator, sheen: bool) -> SolveOptions {

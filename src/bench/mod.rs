@@ -139,15 +139,8 @@ pub fn variants() -> Vec<Variant> {
         scenes: &[],
         single_run: false,
     };
-    // The material's lobe, as the renderer's (`synth::Sheen::default`).
-    let sheen = {
-        let s = Sheen::default();
-        solve::SheenModel {
-            f0: s.f0,
-            alpha: s.alpha,
-            amplitude: s.amplitude,
-        }
-    };
+    // The material's lobe: the renderer's own.
+    let sheen = Sheen::default();
     let with_sheen = |variant: Variant| {
         let mut options = variant.options;
         options.robust.sheen = Some(sheen);

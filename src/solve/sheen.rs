@@ -37,7 +37,8 @@ pub struct SheenModel {
 }
 
 impl Default for SheenModel {
-    /// The synthetic velvet's lobe (`synth::Sheen::default`), Ashikhmin's amplitude 4.
+    /// The synthetic velvet's lobe (the renderer's `synth::Sheen` is this type), Ashikhmin's
+    /// amplitude 4.
     fn default() -> Self {
         SheenModel {
             f0: [0.35; 3],
@@ -62,11 +63,12 @@ impl SheenModel {
     }
 
     /// Seed eq. 22: the inverted-Gaussian distribution at half-vector cosine `cos_h`.
-    fn distribution(&self, cos_h: f64) -> f64 {
+    pub fn distribution(&self, cos_h: f64) -> f64 {
         let a2 = self.alpha * self.alpha;
         let norm = 1.0 / (std::f64::consts::PI * (1.0 + self.amplitude * a2));
         let sin2 = (1.0 - cos_h * cos_h).max(0.0);
         if sin2 < 1e-12 {
+            // exp(-cot^2/a^2) vanishes far faster than sin^4 does.
             return norm;
         }
         let cot2 = cos_h * cos_h / sin2;

@@ -3,68 +3,34 @@
 //! no geometry term and the smoothed denominator `4 (n.l + n.v - (n.l)(n.v))`.
 
 use nalgebra::Vector3;
-use serde::{Deserialize, Serialize};
 
-/// Parameters of the sheen lobe.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Sheen {
-    /// Fresnel reflectance at normal incidence per channel (the sheen colour).
-    pub f0: [f64; 3],
-    /// Width of the inverted Gaussian (larger: broader sheen).
-    pub alpha: f64,
-    /// Amplitude of the grazing peak (Ashikhmin and the seed use 4).
-    pub amplitude: f64,
-}
+/// Parameters of the sheen lobe: the solver's model of the material, so that the renderer and
+/// the sheen fit share one definition of the lobe (seed eq. 21-23).
+pub type Sheen = crate::solve::SheenModel;
 
-impl Default for Sheen {
-    fn default() -> Self {
-        Sheen {
-            f0: [0.35, 0.35, 0.35],
-            alpha: 0.4,
-            amplitude: 4.0,
-        }
+/// `pi * f * (n.l)` per channel for diffuse albedo `kd` under the sheen BRDF: the factor that
+/// multiplies the light's white-surface signal (for a Lambertian surface this is `kd * n.l`).
+pub fn sheen_shade(
+    sheen: &Sheen,
+    kd: [f64; 3],
+    n: &Vector3<f64>,
+    l: &Vector3<f64>,
+    v: &Vector3<f64>,
+) -> [f64; 3] {
+    let nl = n.dot(l);
+    if nl <= 0.0 {
+        return [0.0; 3];
     }
-}
-
-impl Sheen {
-    /// Seed eq. 22: the normalised inverted-Gaussian distribution at half-vector angle with
-    /// cosine `cos_h`.
-    pub fn distribution(&self, cos_h: f64) -> f64 {
-        let a2 = self.alpha * self.alpha;
-        let norm = 1.0 / (std::f64::consts::PI * (1.0 + self.amplitude * a2));
-        let sin2 = (1.0 - cos_h * cos_h).max(0.0);
-        if sin2 < 1e-12 {
-            // exp(-cot^2/a^2) vanishes far faster than sin^4 does.
-            return norm;
-        }
-        let cot2 = cos_h * cos_h / sin2;
-        norm * (1.0 + self.amplitude * (-cot2 / a2).exp() / (sin2 * sin2))
-    }
-
-    /// `pi * f * (n.l)` per channel for diffuse albedo `kd`: the factor that multiplies the
-    /// light's white-surface signal (for a Lambertian surface this is `kd * n.l`).
-    pub fn shade(
-        &self,
-        kd: [f64; 3],
-        n: &Vector3<f64>,
-        l: &Vector3<f64>,
-        v: &Vector3<f64>,
-    ) -> [f64; 3] {
-        let nl = n.dot(l);
-        if nl <= 0.0 {
-            return [0.0; 3];
-        }
-        let nv = n.dot(v).max(0.0);
-        let h = (l + v).normalize();
-        let vh = v.dot(&h).clamp(0.0, 1.0);
-        let d = self.distribution(n.dot(&h).clamp(-1.0, 1.0));
-        let denominator = 4.0 * (nl + nv - nl * nv);
-        std::array::from_fn(|c| {
-            let f = self.f0[c] + (1.0 - self.f0[c]) * (1.0 - vh).powi(5);
-            let brdf = (1.0 - f) * kd[c] / std::f64::consts::PI + f * d / denominator;
-            std::f64::consts::PI * brdf * nl
-        })
-    }
+    let nv = n.dot(v).max(0.0);
+    let h = (l + v).normalize();
+    let vh = v.dot(&h).clamp(0.0, 1.0);
+    let d = sheen.distribution(n.dot(&h).clamp(-1.0, 1.0));
+    let denominator = 4.0 * (nl + nv - nl * nv);
+    std::array::from_fn(|c| {
+        let f = sheen.f0[c] + (1.0 - sheen.f0[c]) * (1.0 - vh).powi(5);
+        let brdf = (1.0 - f) * kd[c] / std::f64::consts::PI + f * d / denominator;
+        std::f64::consts::PI * brdf * nl
+    })
 }
 
 /// Lambertian shading: `kd * max(n.l, 0)`.
@@ -103,14 +69,20 @@ mod tests {
         let l = Vector3::new(0.0, -1.0, 0.2).normalize();
         let v = Vector3::z();
         assert_eq!(
-            Sheen::default().shade([0.5; 3], &n, &Vector3::new(0.0, 0.0, -1.0), &v),
+            sheen_shade(
+                &Sheen::default(),
+                [0.5; 3],
+                &n,
+                &Vector3::new(0.0, 0.0, -1.0),
+                &v
+            ),
             [0.0; 3]
         );
         let no_sheen = Sheen {
             f0: [0.0; 3],
             ..Sheen::default()
         };
-        let s = no_sheen.shade([0.5; 3], &n, &l, &v);
+        let s = sheen_shade(&no_sheen, [0.5; 3], &n, &l, &v);
         // Schlick is not zero at grazing even with f0 = 0; it only lowers the diffuse part.
         assert!(s[0] <= lambert([0.5; 3], &n, &l)[0] + 1e-12);
     }

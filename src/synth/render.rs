@@ -7,7 +7,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::brdf::{lambert, Sheen};
+use super::brdf::{lambert, sheen_shade, Sheen};
 use super::textile::Textile;
 use crate::error::{Error, Result};
 use crate::plane::{Frames, LightFrame, Plane, RgbPlanes, SensorWindow};
@@ -168,7 +168,7 @@ impl<'a> Scene<'a> {
                         None => lambert(kd, &n, &light.direction),
                         Some(sheen) => {
                             let view = (camera - point).normalize();
-                            sheen.shade(kd, &n, &light.direction, &view)
+                            sheen_shade(sheen, kd, &n, &light.direction, &view)
                         }
                     };
                     let visibility = match &self.shadow_grid {
