@@ -131,6 +131,33 @@ fn each_estimator_does_what_it_says_on_a_lambertian_set() {
     }
 }
 
+/// `--model-error` adds variance to both tests, so it can only pass more pixels: fewer
+/// escalations, never more; a negative fraction is refused with the option's name.
+#[test]
+fn model_error_widens_the_tests() {
+    let set = &sets().hard;
+    let (plain, _a) = solve(set, &[]);
+    let (widened, _b) = solve(set, &["--model-error", "0.05"]);
+    assert_eq!(widened["options"]["robust"]["relative_model_error"], 0.05);
+    let escalated = |r: &Value| r["escalated"].as_u64().unwrap();
+    assert!(escalated(&plain) > 0);
+    assert!(
+        escalated(&widened) < escalated(&plain),
+        "{} vs {}",
+        escalated(&widened),
+        escalated(&plain)
+    );
+    let out = psscan(&[
+        "solve",
+        s(set),
+        "--out",
+        s(&_a.path().join("bad")),
+        "--model-error=-0.1",
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(stderr(&out).contains("--model-error"), "{}", stderr(&out));
+}
+
 #[test]
 fn sheen_fit_halves_the_error_on_shadows_and_sheen() {
     let set = &sets().hard;

@@ -219,6 +219,12 @@ struct SolveFlags {
     /// the lobe's shape: f0 (Fresnel at normal incidence), alpha (width), amplitude.
     #[arg(long, num_args = 3, value_names = ["F0", "ALPHA", "AMPLITUDE"])]
     sheen_fit: Option<Vec<f64>>,
+    /// How far real readings may depart from the surface model, as a fraction of the reading,
+    /// added in quadrature to the sensor noise in the robust and adaptive tests (0: the noise
+    /// model alone decides). For data whose noise model is rounding only, such as rendered
+    /// benchmark sets.
+    #[arg(long, default_value_t = 0.0, value_name = "FRACTION")]
+    model_error: f64,
     /// Least-squares method.
     #[arg(long, value_enum, default_value_t = MethodArg::Fast)]
     method: MethodArg,
@@ -291,6 +297,11 @@ enum LightModelArg {
 
 impl SolveFlags {
     fn job(&self) -> anyhow::Result<SolveJob> {
+        anyhow::ensure!(
+            self.model_error >= 0.0 && self.model_error.is_finite(),
+            "--model-error must be a fraction of the reading, 0 or more (0.01 = 1 %), got {}",
+            self.model_error
+        );
         Ok(SolveJob {
             region: RegionJob {
                 roi: self.roi.as_deref().map(Roi::parse).transpose()?,
@@ -319,6 +330,7 @@ impl SolveFlags {
                         alpha: v[1],
                         amplitude: v[2],
                     }),
+                    relative_model_error: self.model_error,
                     ..RobustOptions::default()
                 },
                 ..SolveOptions::default()
