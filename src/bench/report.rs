@@ -169,7 +169,7 @@ pub fn markdown(result: &BenchResult) -> String {
     for m in &result.memory {
         let _ = writeln!(
             s,
-            "\nPeak memory of `{}` at {:.0} MP: {:.2} GB for {:.2} GB of decoded input = **{:.2}x**.",
+            "\nPeak memory of `{}` at {:.1} MP: {:.2} GB for {:.2} GB of decoded input = **{:.2}x**.",
             m.variant,
             m.megapixels,
             m.peak_bytes as f64 / 1e9,
@@ -200,7 +200,7 @@ pub fn markdown(result: &BenchResult) -> String {
     for (mp, tile, err) in &result.tiles {
         let _ = writeln!(
             s,
-            "\nTile grid at {mp:.0} MP: {tile} px tiles, estimated interpolation error {err:.5} deg."
+            "\nTile grid at {mp:.1} MP: {tile} px tiles, estimated interpolation error {err:.5} deg."
         );
     }
     let _ = writeln!(

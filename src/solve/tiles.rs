@@ -17,8 +17,11 @@ use nalgebra::{Matrix3, Vector3};
 use super::lights::Illumination;
 use crate::eval::angle_deg;
 
-/// Tile sizes tried, largest first (multiples of the kernel's lane count).
-pub const TILE_SIZES: [usize; 5] = [256, 128, 64, 32, 16];
+/// Tile sizes tried, largest first. A chunk of the kernel's 16 lanes inside one tile
+/// interpolates from one node column; one that crosses a tile border fills a per-lane table,
+/// which every chunk does below 16 px tiles (still far cheaper than exact coefficients per
+/// pixel; small images, where a pixel covers much of the sensor, need small tiles).
+pub const TILE_SIZES: [usize; 7] = [256, 128, 64, 32, 16, 8, 4];
 
 /// The exact coefficients at one point (layout above). `false` where the pixel's ray misses
 /// the sample or a light gives no light there.
@@ -260,4 +263,46 @@ pub fn plan(
         }
     }
     None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plane::SensorWindow;
+    use crate::rig::Rig;
+    use crate::solve::{LightModel, LightSource};
+
+    /// A small image of the whole field (a pixel spans 16 sensor pixels) needs tiles under 16
+    /// px to stay within a 0.01-degree tolerance; it gets them instead of exact coefficients per
+    /// pixel, and the interpolation error measured at pixels between the nodes stays within
+    /// the tolerance.
+    #[test]
+    fn small_whole_field_images_get_small_tiles_within_the_tolerance() {
+        let rig = Rig::default_rig();
+        let (w, h) = (308, 204);
+        let window = SensorWindow::centred(
+            rig.camera.width as usize,
+            rig.camera.height as usize,
+            w,
+            h,
+            16.0,
+        );
+        let illumination =
+            Illumination::new(&LightSource::Rig(&rig), LightModel::Near, w, h, window).unwrap();
+        let tolerance = 0.01;
+        let grid = plan(&illumination, w, h, tolerance).expect("a tile grid");
+        assert!(grid.tile < 16, "{} px tiles", grid.tile);
+        let mut scratch = vec![0.0; stride(illumination.len())];
+        let mut worst: f64 = 0.0;
+        for y in (1..h).step_by(7) {
+            for x in (1..w).step_by(5) {
+                if let Some(e) =
+                    interpolation_error_at(&grid, &illumination, (x, y, w, h), &mut scratch)
+                {
+                    worst = worst.max(e);
+                }
+            }
+        }
+        assert!(worst > 0.0 && worst <= tolerance, "{worst}");
+    }
 }
