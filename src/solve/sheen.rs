@@ -335,18 +335,17 @@ fn coarse_search(
             continue;
         }
         let cost: f64 = r[..m].iter().map(|e| e * e).sum();
-        // Insertion into the short sorted list.
-        let mut candidate = Some((cost, *n));
+        // Insertion into the short list, kept sorted by cost: the candidate takes the first
+        // slot it beats and carries the one it displaced on down.
+        let mut candidate = (cost, *n);
         for slot in best_of.iter_mut() {
-            match (slot.as_ref(), candidate) {
-                (None, _) => {
-                    *slot = candidate;
+            match slot {
+                None => {
+                    *slot = Some(candidate);
                     break;
                 }
-                (Some((c, _)), Some((cost, _))) if cost < *c => {
-                    candidate = slot.replace(candidate.unwrap());
-                }
-                _ => {}
+                Some(held) if candidate.0 < held.0 => std::mem::swap(held, &mut candidate),
+                Some(_) => {}
             }
         }
     }
