@@ -60,6 +60,14 @@ fn solve(set: &Path, flags: &[&str]) -> (Value, tempfile::TempDir) {
     (report, out)
 }
 
+/// Runs `psscan solve SET --out OUT FLAGS...`, which must be refused (exit 1) with `needle` in
+/// its error.
+fn assert_refused(set: &Path, out: &Path, flags: &[&str], needle: &str) {
+    let output = psscan(&[&["solve", s(set), "--out", s(out)], flags].concat());
+    assert_eq!(output.status.code(), Some(1));
+    assert!(stderr(&output).contains(needle), "{}", stderr(&output));
+}
+
 fn mean_error(report: &Value) -> f64 {
     report["truth"]["normal_error_deg"]["mean"]
         .as_f64()
@@ -147,15 +155,12 @@ fn model_error_widens_the_tests() {
         escalated(&widened),
         escalated(&plain)
     );
-    let out = psscan(&[
-        "solve",
-        s(set),
-        "--out",
-        s(&_a.path().join("bad")),
-        "--model-error=-0.1",
-    ]);
-    assert_eq!(out.status.code(), Some(1));
-    assert!(stderr(&out).contains("--model-error"), "{}", stderr(&out));
+    assert_refused(
+        set,
+        &_a.path().join("bad"),
+        &["--model-error=-0.1"],
+        "--model-error",
+    );
 }
 
 #[test]
@@ -173,18 +178,12 @@ fn sheen_fit_halves_the_error_on_shadows_and_sheen() {
     assert!(count(&fit, "fits", "sheen") > 0);
     assert_eq!(count(&plain, "fits", "sheen"), 0);
     // A lobe that is not a lobe is refused with the reason.
-    let out = psscan(&[
-        "solve",
-        s(set),
-        "--out",
-        s(&_a.path().join("bad")),
-        "--sheen-fit",
-        "1.5",
-        "0.4",
-        "4",
-    ]);
-    assert_eq!(out.status.code(), Some(1));
-    assert!(stderr(&out).contains("f0"), "{}", stderr(&out));
+    assert_refused(
+        set,
+        &_a.path().join("bad"),
+        &["--sheen-fit", "1.5", "0.4", "4"],
+        "f0",
+    );
 }
 
 #[test]
@@ -234,21 +233,11 @@ fn precision_and_tiles_stay_within_their_tolerance() {
         }
     }
     // The robust estimator runs the exact kernel everywhere: the streaming options are refused.
-    let out = psscan(&[
-        "solve",
-        s(set),
-        "--out",
-        s(&exact_dir.path().join("robust")),
-        "--estimator",
-        "robust",
-        "--precision",
-        "f32",
-    ]);
-    assert_eq!(out.status.code(), Some(1));
-    assert!(
-        stderr(&out).contains("--estimator adaptive"),
-        "{}",
-        stderr(&out)
+    assert_refused(
+        set,
+        &exact_dir.path().join("robust"),
+        &["--estimator", "robust", "--precision", "f32"],
+        "--estimator adaptive",
     );
     let _ = exact;
 }
@@ -325,16 +314,12 @@ fn roi_bin_and_background_limit_the_work() {
     // A mask of the wrong size is refused, naming the file.
     let small = whole_dir.path().join("small.png");
     image::GrayImage::new(8, 8).save(&small).unwrap();
-    let out = psscan(&[
-        "solve",
-        s(set),
-        "--out",
-        s(&whole_dir.path().join("bad")),
-        "--background",
-        s(&small),
-    ]);
-    assert_eq!(out.status.code(), Some(1));
-    assert!(stderr(&out).contains("small.png"), "{}", stderr(&out));
+    assert_refused(
+        set,
+        &whole_dir.path().join("bad"),
+        &["--background", s(&small)],
+        "small.png",
+    );
 }
 
 #[test]

@@ -96,17 +96,12 @@ fn render_with(
     Rendered { scene, frames }
 }
 
-/// The material's sheen lobe as the solver's model (the renderer's own type and values).
-fn sheen_model() -> SheenModel {
-    Sheen::default()
-}
-
 fn options(estimator: Estimator, sheen: bool) -> SolveOptions {
     let mut options = SolveOptions {
         estimator,
         ..SolveOptions::default()
     };
-    options.robust.sheen = sheen.then(sheen_model);
+    options.robust.sheen = sheen.then(SheenModel::default);
     options
 }
 
