@@ -187,10 +187,19 @@ fn the_report_records_how_the_maps_were_written() {
     assert_eq!(dx["options"]["estimator"], "ls");
     assert_eq!(dx["options"]["light_model"], "distant");
     // The same record in the file next to the maps.
-    let file = dx["outputs"]["confidence_exr"].as_str().unwrap();
-    let written: Value = serde_json::from_str(
-        &std::fs::read_to_string(Path::new(file).with_file_name("report.json")).unwrap(),
-    )
-    .unwrap();
-    assert_eq!(written["maps"], dx["maps"]);
+    let out = tempfile::tempdir().unwrap();
+    let dir = out.path().join("dx");
+    json(&psscan(&[
+        "solve",
+        s(set),
+        "--out",
+        s(&dir),
+        "--directx",
+        "-q",
+        "--json",
+    ]));
+    let written: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+    assert_eq!(written["maps"]["normal_convention"], "directx");
+    assert_eq!(written["maps"]["png"], true);
 }
