@@ -223,19 +223,18 @@ impl<'a> Scene<'a> {
     }
 }
 
-/// Most samples a shadow grid may hold (4 bytes each).
-const MAX_SHADOW_GRID_CELLS: f64 = 48e6;
+/// Samples a shadow grid may hold to resolve the threads at a coarse step (4 bytes each).
+const MAX_RELIEF_GRID_CELLS: f64 = 16e6;
 
 /// Side of the shadow grid's cells for pixels `footprint` apart on the table, threads
 /// `thread_pitch` apart, over `area` (m^2). Half the footprint keeps fibre-scale shadows at
-/// full resolution; at a coarse `--step` the footprint outgrows the threads and a grid that
-/// coarse smooths the relief that casts the shadows away (at step 16 nothing was shadowed), so
-/// the cell stays under a sixteenth of the pitch, unless that needs more than
-/// `MAX_SHADOW_GRID_CELLS` samples.
+/// full resolution. At a coarse `--step` the footprint outgrows the threads, and a grid that
+/// coarse smooths away the relief that casts the shadows (at step 16 nothing was shadowed):
+/// there the cell is a sixteenth of the pitch, or as fine as `MAX_RELIEF_GRID_CELLS` allows
+/// over the whole field (a tenth of the pitch over the default rig's full sensor).
 fn shadow_grid_cell(footprint: f64, thread_pitch: f64, area: f64) -> f64 {
-    let relief = (thread_pitch / 16.0).max(1e-6);
-    let budget = (area / MAX_SHADOW_GRID_CELLS).sqrt();
-    (0.5 * footprint).min(relief).max(budget).max(1e-6)
+    let relief = (thread_pitch / 16.0).max((area / MAX_RELIEF_GRID_CELLS).sqrt());
+    (0.5 * footprint).min(relief).max(1e-6)
 }
 
 /// The height field resampled on a regular world grid around the visible sample, for
