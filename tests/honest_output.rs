@@ -203,3 +203,52 @@ fn the_report_records_how_the_maps_were_written() {
     assert_eq!(written["maps"]["normal_convention"], "directx");
     assert_eq!(written["maps"]["png"], true);
 }
+
+/// A DiLiGenT-layout set written here: a 16 x 16 Lambertian plane tilted toward +x (normal
+/// (0.2, 0, 0.98)), albedo 0.5, under six distant lights.
+fn write_diligent_set(dir: &Path) {
+    std::fs::create_dir_all(dir).unwrap();
+    let lights: [[f64; 3]; 6] = [
+        [0.0, 0.0, 1.0],
+        [0.5, 0.0, 0.866],
+        [-0.5, 0.0, 0.866],
+        [0.0, 0.5, 0.866],
+        [0.0, -0.5, 0.866],
+        [0.35, 0.35, 0.866],
+    ];
+    let n = {
+        let v = [0.2f64, 0.0, 0.98];
+        let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        v.map(|c| c / len)
+    };
+    let (mut names, mut directions, mut intensities) =
+        (String::new(), String::new(), String::new());
+    for (k, l) in lights.iter().enumerate() {
+        let len = (l[0] * l[0] + l[1] * l[1] + l[2] * l[2]).sqrt();
+        let l = l.map(|c| c / len);
+        let shade = 0.5 * (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]);
+        let value = (shade * 65535.0).round() as u16;
+        let name = format!("{:03}.png", k + 1);
+        image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::from_pixel(16, 16, image::Rgb([value; 3]))
+            .save(dir.join(&name))
+            .unwrap();
+        names.push_str(&format!("{name}\n"));
+        directions.push_str(&format!("{} {} {}\n", l[0], l[1], l[2]));
+        intensities.push_str("1 1 1\n");
+    }
+    std::fs::write(dir.join("filenames.txt"), names).unwrap();
+    std::fs::write(dir.join("light_directions.txt"), directions).unwrap();
+    std::fs::write(dir.join("light_intensities.txt"), intensities).unwrap();
+}
+
+#[test]
+fn a_diligent_set_has_no_predicted_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let set = tmp.path().join("plane");
+    write_diligent_set(&set);
+    // The benchmark's noise is unknown, so there is no prediction; the solve itself works.
+    let (report, text) = solve(&set, &["--estimator", "ls"]);
+    assert_eq!(report["pixels"]["solved"], 256);
+    assert!(report["predicted_normal_error_deg"]["mean"].is_null());
+    assert!(text.contains("predicted normal error n/a"), "{text}");
+}
