@@ -238,6 +238,9 @@ pub struct SetSummary {
     /// Mean angular error against ground truth, when the set has it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub normal_error_deg: Option<f64>,
+    /// The solve's warnings (see `Report::warnings`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
     pub seconds: f64,
     pub report: PathBuf,
 }
@@ -257,6 +260,7 @@ impl SetSummary {
                     .normal_truth
                     .as_ref()
                     .map(|t| t.normal_error_deg.mean)),
+            warnings: report.warnings.clone(),
             seconds: report.timings_s.get("total").copied().unwrap_or(0.0),
             report: out.join(maps::REPORT_FILE),
         }

@@ -137,6 +137,22 @@ fn many_pixels_failing_the_model_test_are_reported_with_what_to_try() {
         text.contains("WARNING: ") && text.contains("fail the model test"),
         "{text}"
     );
+
+    // A batch names the warning beside the set it belongs to.
+    let out = tempfile::tempdir().unwrap();
+    let batch = json(&psscan(&[
+        "solve",
+        s(&sets().lambertian),
+        s(&sets().hard),
+        "--out",
+        s(out.path()),
+        "--json",
+        "-q",
+    ]));
+    let sets = batch["sets"].as_array().unwrap();
+    assert!(sets[0]["summary"]["warnings"].is_null(), "{}", sets[0]);
+    let warning = sets[1]["summary"]["warnings"][0].as_str().unwrap();
+    assert!(warning.contains("fail the model test"), "{warning}");
 }
 
 #[test]

@@ -640,6 +640,7 @@ fn print_batch(summary: &BatchSummary) {
                     deg_or_na(s.predicted_normal_error_deg),
                     s.seconds
                 );
+                print_warnings(&s.warnings);
             }
             (None, error) => eprintln!(
                 "FAILED  {}: {}",
