@@ -165,6 +165,10 @@ fn solve_diligent_into(
         &job.options,
         pipeline::relocate(outputs, out),
     );
+    report.maps = job.maps.clone();
+    // The benchmark's sensor noise is not known (only its rounding is modelled above), so a
+    // predicted error would be a figure for a noise-free camera: reported as unknown.
+    report.predicted_normal_error_deg = crate::maps::report::Mean::UNKNOWN;
     report.decode = Some(DecodeInfo {
         encoding: "diligent-png16".into(),
         resolution: Resolution::Full,
@@ -234,6 +238,9 @@ pub struct SetSummary {
     /// Mean angular error against ground truth, when the set has it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub normal_error_deg: Option<f64>,
+    /// The solve's warnings (see `Report::warnings`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
     pub seconds: f64,
     pub report: PathBuf,
 }
@@ -253,6 +260,7 @@ impl SetSummary {
                     .normal_truth
                     .as_ref()
                     .map(|t| t.normal_error_deg.mean)),
+            warnings: report.warnings.clone(),
             seconds: report.timings_s.get("total").copied().unwrap_or(0.0),
             report: out.join(maps::REPORT_FILE),
         }

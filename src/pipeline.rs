@@ -653,6 +653,7 @@ pub fn solve_capture_set_reusing(
 
     let outputs = relocate(outputs, out);
     let mut report = Report::new(dir, &set.rig.name, &result, &job.options, outputs);
+    report.maps = map_options;
     report.calibration = calibration.as_ref().map(|b| b.citation());
     report.calibration_cited_by_set = set.manifest.calibration.clone().filter(|c| {
         report
@@ -662,10 +663,10 @@ pub fn solve_capture_set_reusing(
     });
     if let Some(truth) = truth_for(&set, &decode)? {
         let (normal, albedo) = region_truth(truth, &job.region)?;
-        report.truth = Some(eval::compare(&result, &normal, &albedo));
+        report.set_truth(eval::compare(&result, &normal, &albedo));
     }
     if !job.region.is_full() {
-        report.region = Some(region_info);
+        report.set_region(region_info);
     }
     report.decode = Some(decode);
     timings.insert("total".into(), total.elapsed().as_secs_f64());
@@ -741,6 +742,9 @@ pub struct DemoSummary {
     pub predicted_normal_error_deg: Mean,
     pub albedo_rel_error: Stats,
     pub solved_pixels: usize,
+    /// The solve's warnings (see `Report::warnings`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
     pub timings_s: BTreeMap<String, f64>,
     pub paths: DemoPaths,
 }
@@ -793,6 +797,7 @@ pub fn run_demo(
         predicted_normal_error_deg: report.predicted_normal_error_deg,
         albedo_rel_error: truth.albedo_rel_error,
         solved_pixels: truth.pixels,
+        warnings: report.warnings.clone(),
         timings_s: timings,
         paths: DemoPaths {
             capture,

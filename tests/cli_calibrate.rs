@@ -603,9 +603,18 @@ fn graychart_cli_over_dng_files_gives_the_sensor_gains_linearity_and_clipped_pat
         "--step",
         "2",
     ];
+    // A capture set's all-off frame among the photographs is left out, as the white-sheet
+    // step does: still one photograph per LED.
+    std::fs::copy(images.join("L00.dng"), images.join("dark.dng")).unwrap();
     let mut args = base.to_vec();
     args.extend(["--out", s(&out_file), "--json", "-q"]);
     let v = json(&psscan(&args));
+    assert!(
+        v["dark_frame_left_out"]
+            .as_str()
+            .is_some_and(|p| p.ends_with("dark.dng")),
+        "{v}"
+    );
     // The same numbers as the library on the mosaics in memory: the DNGs are lossless.
     let window = SensorWindow::centred(4928, 3264, CHART_VIEW.0, CHART_VIEW.1, CHART_VIEW.2);
     let (_, rect_lib) = targets::gray_chart_mosaics(&rig, &chart, CHART_WORLD, CHART_VIEW, 1.0, 7);

@@ -76,10 +76,11 @@ fn capture_over_the_emulated_firmware_then_solve() {
         "{measured} vs {predicted}"
     );
 
-    // A complete set is never overwritten without --force.
+    // A complete set is never overwritten without --force; the message names both ways on.
     let again = psscan(&capture_args(&set, emu.pty(), &pins, "5"));
     assert_eq!(again.status.code(), Some(1));
-    assert!(stderr(&again).contains("--force"), "{}", stderr(&again));
+    let err = stderr(&again);
+    assert!(err.contains("--force") && err.contains("--resume"), "{err}");
 }
 
 #[test]

@@ -155,12 +155,16 @@ fn model_error_widens_the_tests() {
         escalated(&widened),
         escalated(&plain)
     );
-    assert_refused(
-        set,
-        &_a.path().join("bad"),
-        &["--model-error=-0.1"],
-        "--model-error",
-    );
+    // A negative fraction is a usage error (exit 2), caught while the arguments are parsed.
+    let bad = psscan(&[
+        "solve",
+        s(set),
+        "--out",
+        s(&_a.path().join("bad")),
+        "--model-error=-0.1",
+    ]);
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(stderr(&bad).contains("--model-error"), "{}", stderr(&bad));
 }
 
 #[test]

@@ -56,7 +56,7 @@ fn seeds() -> Vec<(String, Vec<u8>)> {
             .unwrap(),
         ),
     ];
-    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/raw");
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/raw");
     for name in [
         "stripped-Nikon.nef",
         "stripped-CanonRaw.cr2",
@@ -64,7 +64,7 @@ fn seeds() -> Vec<(String, Vec<u8>)> {
         "stripped-DNG.dng",
         "real-canon550d-colorchart.dng",
     ] {
-        seeds.push((name.to_string(), std::fs::read(shared.join(name)).unwrap()));
+        seeds.push((name.to_string(), std::fs::read(shipped.join(name)).unwrap()));
     }
     seeds
 }

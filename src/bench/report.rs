@@ -287,8 +287,10 @@ fn draw_panel(
         .filter(|r| r.mean_error_deg > 0.0)
         .collect();
     let e_max = solved.iter().map(|r| r.mean_error_deg).fold(0.0, f64::max) * 1.15;
-    let mut chart = ChartBuilder::on(area)
-        .caption(format!("{scene}, {size:.0} MP"), ("sans-serif", 18))
+    // The legend gets its own column beside the axes, so it never covers a data point.
+    let (plot_area, legend_area) = area.split_horizontally((area.dim_in_pixel().0 * 3 / 5) as i32);
+    let mut chart = ChartBuilder::on(&plot_area)
+        .caption(format!("{scene}, {}", size_label(size)), ("sans-serif", 18))
         .margin(12)
         .x_label_area_size(36)
         .y_label_area_size(52)
@@ -298,32 +300,45 @@ fn draw_panel(
         .x_desc("run time (s, log)")
         .y_desc("mean angular error (deg)")
         .draw()?;
+    let font = ("sans-serif", 11).into_font();
+    let entry_y = |i: usize| 40 + 18 * i as i32;
     for (i, r) in solved.iter().enumerate() {
         let colour = HSLColor(i as f64 / solved.len().max(1) as f64, 0.8, 0.4);
-        chart
-            .draw_series(std::iter::once(Circle::new(
-                (r.seconds, r.mean_error_deg),
-                5,
-                colour.filled(),
-            )))?
-            .label(r.variant.clone())
-            .legend(move |(x, y)| Circle::new((x, y), 4, colour.filled()));
+        chart.draw_series(std::iter::once(Circle::new(
+            (r.seconds, r.mean_error_deg),
+            5,
+            colour.filled(),
+        )))?;
+        legend_area.draw(&Circle::new((12, entry_y(i)), 4, colour.filled()))?;
+        legend_area.draw(&Text::new(
+            r.variant.clone(),
+            (24, entry_y(i) - 6),
+            font.clone(),
+        ))?;
     }
     if let Some(floor) = rows.iter().find(|r| r.variant == "memory-read floor") {
-        chart
-            .draw_series(LineSeries::new(
-                [(floor.seconds, 0.0), (floor.seconds, e_max.max(1e-3))],
-                BLACK.stroke_width(2),
-            ))?
-            .label("memory-read floor")
-            .legend(|(x, y)| PathElement::new([(x, y - 6), (x, y + 6)], BLACK.stroke_width(2)));
+        chart.draw_series(LineSeries::new(
+            [(floor.seconds, 0.0), (floor.seconds, e_max.max(1e-3))],
+            BLACK.stroke_width(2),
+        ))?;
+        let y = entry_y(solved.len());
+        legend_area.draw(&PathElement::new(
+            [(12, y - 6), (12, y + 6)],
+            BLACK.stroke_width(2),
+        ))?;
+        legend_area.draw(&Text::new("memory-read floor", (24, y - 6), font.clone()))?;
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .position(SeriesLabelPosition::UpperRight)
-        .label_font(("sans-serif", 11))
-        .draw()?;
     Ok(())
+}
+
+/// A scene size for captions: whole megapixels from 1 MP up; smaller scenes say so, with
+/// two decimals (a 0.12 MP scene is not "0 MP").
+pub fn size_label(megapixels: f64) -> String {
+    if megapixels >= 1.0 && megapixels.fract() == 0.0 {
+        format!("{megapixels:.0} MP")
+    } else if megapixels >= 1.0 {
+        format!("{megapixels:.1} MP")
+    } else {
+        format!("{megapixels:.2} MP (under 1 MP)")
+    }
 }

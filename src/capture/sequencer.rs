@@ -301,9 +301,12 @@ fn open_set(
         let complete = set.manifest.dark_frame().is_some()
             && (0..set.rig.leds.len()).all(|k| set.manifest.light_frame(k).is_some());
         return Err(if complete {
-            Error::Exists {
-                path: dir.join(MANIFEST_FILE),
-            }
+            Error::capture_set(
+                dir,
+                "already holds a complete capture set, so --resume has nothing left to shoot; \
+                 pass --force to shoot it again (its frames are replaced), or choose another \
+                 --out",
+            )
         } else {
             Error::capture_set(
                 dir,
@@ -580,7 +583,8 @@ mod tests {
             &Interrupt::new(),
             &Silent,
         );
-        assert!(again.unwrap_err().to_string().contains("--force"));
+        let err = again.unwrap_err().to_string();
+        assert!(err.contains("--force") && err.contains("--resume"), "{err}");
         let resumed = run_capture(
             dir.path(),
             &rig,

@@ -80,7 +80,8 @@ impl RigArgs {
 #[derive(Args)]
 pub struct GraychartArgs {
     /// RAW photographs of the chart lying on the table, one per LED in LED order: a folder
-    /// (its RAW files in name order) or the files.
+    /// (its RAW files in name order) or the files. A file named `dark.*` (the all-off frame
+    /// of a capture set) is left out: the linearity fit's offset takes the black level.
     #[arg(long, num_args = 1.., required = true)]
     images: Vec<PathBuf>,
     /// Chart description (TOML: name, rows, cols, reflectance row by row, sample_fraction),
@@ -217,7 +218,8 @@ pub fn graychart(args: &GraychartArgs, json: bool) -> anyhow::Result<()> {
     let chart = load_chart(&args.chart)?;
     let rect = args.rect.as_deref().map(parse_rect).transpose()?;
     let rig = args.rig.rig()?;
-    let files = files::list_images(&args.images, &RAW_EXTENSIONS, "RAW photographs")?;
+    let listed = files::list_images(&args.images, &RAW_EXTENSIONS, "RAW photographs")?;
+    let (files, dark) = files::split_dark(listed)?;
     let (report, rect, found) = steps::graychart_from_files(&steps::ChartInputs {
         files: &files,
         chart: &chart,
@@ -232,8 +234,15 @@ pub fn graychart(args: &GraychartArgs, json: bool) -> anyhow::Result<()> {
     if json {
         let mut v = serde_json::to_value(&report)?;
         v["rect"] = serde_json::json!({"x": rect.x0, "y": rect.y0, "width": w, "height": h, "found": found});
+        v["dark_frame_left_out"] = serde_json::json!(dark);
         print_json(&v);
         return Ok(());
+    }
+    if let Some(dark) = &dark {
+        println!(
+            "dark frame {} left out (one photograph per LED)",
+            dark.display()
+        );
     }
     println!(
         "chart rectangle {:.1},{:.1},{w:.1},{h:.1} (X,Y,W,H in image pixels{})",

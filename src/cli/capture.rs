@@ -40,14 +40,16 @@ pub fn interrupt_on_ctrl_c() -> anyhow::Result<Interrupt> {
 #[derive(Args, Clone)]
 pub struct PortArgs {
     /// Serial port of the LED controller, or `auto` (the one Arduino plugged in).
-    #[arg(long, default_value = "auto")]
+    // `global`: `psscan lights identify --port X` works as well as `psscan lights --port X
+    // identify`.
+    #[arg(long, default_value = "auto", global = true)]
     pub port: String,
     /// Run the LED firmware in its emulator (firmware/build/psscan-avr-sim) instead of a board.
-    #[arg(long, conflicts_with = "port")]
+    #[arg(long, conflicts_with = "port", global = true)]
     pub firmware_sim: bool,
     /// How long to wait for the board's READY banner after opening the port (default: 2500
     /// on a serial device, 0 on a pseudo-terminal).
-    #[arg(long)]
+    #[arg(long, global = true)]
     ready_wait_ms: Option<u64>,
 }
 
@@ -549,11 +551,11 @@ fn print_firmware_sim_demo(s: &FirmwareSimDemoSummary) {
         s.max_leds_on_together
     );
     println!(
-        "  normal error  mean {:.3} deg, median {:.3}, p95 {:.3} (sensor-noise model predicts mean {:.3})",
+        "  normal error  mean {:.3} deg, median {:.3}, p95 {:.3} (sensor-noise model predicts mean {})",
         s.normal_error_deg.mean,
         s.normal_error_deg.median,
         s.normal_error_deg.p95,
-        s.predicted_normal_error_deg.mean
+        super::deg_or_na(s.predicted_normal_error_deg.mean)
     );
     println!(
         "  albedo error  mean {:.2} %, median {:.2} %",

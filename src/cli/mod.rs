@@ -7,8 +7,10 @@ mod calibrate;
 mod calibrate_steps;
 mod capture;
 mod progress;
+mod values;
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use psscan::maps::{MapOptions, NormalConvention};
@@ -68,11 +70,12 @@ struct BenchArgs {
     /// Folder for bench.md, bench.json and bench.svg.
     #[arg(long, default_value = "docs/bench")]
     out: PathBuf,
-    /// Scene sizes in megapixels, comma-separated.
-    #[arg(long, value_delimiter = ',', default_values_t = vec![1.0, 16.0])]
+    /// Scene sizes in megapixels, comma-separated (each more than 0, at most 64).
+    #[arg(long, value_delimiter = ',', default_values_t = vec![1.0, 16.0],
+          value_parser = values::megapixels, allow_negative_numbers = true)]
     sizes: Vec<f64>,
-    /// Timed runs per variant (median reported).
-    #[arg(long, default_value_t = 3)]
+    /// Timed runs per variant (median reported); 1 or more.
+    #[arg(long, default_value_t = 3, value_parser = values::positive_count)]
     repeats: usize,
     /// Do not run the NumPy peer even when python3 and numpy are present.
     #[arg(long)]
@@ -122,13 +125,13 @@ struct SynthArgs {
 #[derive(Args)]
 struct SceneArgs {
     /// Image width in pixels (a centred crop of the rig's sensor).
-    #[arg(long, default_value_t = 2048)]
+    #[arg(long, default_value_t = 2048, value_parser = values::positive_count)]
     width: usize,
     /// Image height in pixels.
-    #[arg(long, default_value_t = 1536)]
+    #[arg(long, default_value_t = 1536, value_parser = values::positive_count)]
     height: usize,
     /// Sensor pixels per image pixel (e.g. 4 covers 4x the field at 1/16 of the pixels).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = values::positive, allow_negative_numbers = true)]
     step: f64,
     /// Render cast shadows from the relief.
     #[arg(long)]
@@ -202,7 +205,8 @@ struct SolveArgs {
     force: bool,
     /// Sets solved at the same time (each set is parallel inside; more sets at once need
     /// more memory).
-    #[arg(long, default_value_t = BatchOptions::default().parallel_sets)]
+    #[arg(long, default_value_t = BatchOptions::default().parallel_sets,
+          value_parser = values::positive_count)]
     parallel_sets: usize,
     #[command(flatten)]
     solve: SolveFlags,
@@ -223,7 +227,8 @@ struct SolveFlags {
     /// added in quadrature to the sensor noise in the robust and adaptive tests (0: the noise
     /// model alone decides). For data whose noise model is rounding only, such as rendered
     /// benchmark sets.
-    #[arg(long, default_value_t = 0.0, value_name = "FRACTION")]
+    #[arg(long, default_value_t = 0.0, value_name = "FRACTION",
+          value_parser = values::non_negative, allow_negative_numbers = true)]
     model_error: f64,
     /// Least-squares method.
     #[arg(long, value_enum, default_value_t = MethodArg::Fast)]
@@ -252,14 +257,14 @@ struct SolveFlags {
     precision: PrecisionArg,
     /// Share light coefficients across tiles where that moves normals by at most this many
     /// degrees (streaming kernel; e.g. 0.01).
-    #[arg(long, value_name = "DEG")]
+    #[arg(long, value_name = "DEG", value_parser = values::positive, allow_negative_numbers = true)]
     tile_tolerance: Option<f64>,
     /// Solve the luminance alone: the normal map, with the luminance albedo in every channel.
     #[arg(long)]
     normal_only: bool,
     /// Solve only this pixel rectangle of the frames: x,y,width,height.
-    #[arg(long, value_name = "X,Y,W,H")]
-    roi: Option<String>,
+    #[arg(long, value_name = "X,Y,W,H", value_parser = values::roi)]
+    roi: Option<Roi>,
     /// 2: solve 2x2-binned frames (a half-resolution preview, 4x fewer pixels).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=2))]
     bin: u8,
@@ -297,14 +302,9 @@ enum LightModelArg {
 
 impl SolveFlags {
     fn job(&self) -> anyhow::Result<SolveJob> {
-        anyhow::ensure!(
-            self.model_error >= 0.0 && self.model_error.is_finite(),
-            "--model-error must be a fraction of the reading, 0 or more (0.01 = 1 %), got {}",
-            self.model_error
-        );
         Ok(SolveJob {
             region: RegionJob {
-                roi: self.roi.as_deref().map(Roi::parse).transpose()?,
+                roi: self.roi,
                 bin: self.bin as usize,
                 background: Background::parse(&self.background),
             },
@@ -363,7 +363,11 @@ impl SolveFlags {
 
 /// Runs the CLI; returns the process exit code.
 pub fn run() -> i32 {
-    let cli = Cli::parse();
+    end_quietly_on_closed_pipe();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(err) => return usage_error(err),
+    };
     // A corrupt RAW file makes some of rawler's decoders panic; psscan catches that and reports
     // the file, so the panic's own message is noise.
     psscan::raw::quiet_decoder_panics();
@@ -380,15 +384,113 @@ pub fn run() -> i32 {
     match outcome {
         Ok(()) => 0,
         Err(err) => {
-            eprintln!("psscan: error: {err:#}");
+            let message = error_text(&err);
             // 130: stopped by Ctrl-C, as shells report SIGINT.
-            match err.downcast_ref::<psscan::Error>() {
+            let code = match err.downcast_ref::<psscan::Error>() {
                 Some(psscan::Error::Interrupted(_)) => 130,
                 _ => 1,
+            };
+            eprintln!("psscan: error: {message}");
+            // A script reading --json gets the failure on stdout too, unless the command
+            // already printed its own object (a batch's summary names each failed set).
+            if cli.json && !JSON_PRINTED.load(Ordering::Relaxed) {
+                print_json(&serde_json::json!({ "error": message, "exit_code": code }));
             }
+            code
         }
     }
 }
+
+/// Rust ignores SIGPIPE, so a print to a closed pipe (`psscan lights ports | head -0`) would
+/// panic; with the default disposition the process ends quietly, as other command-line tools
+/// do. Nothing psscan writes to is a pipe it needs an error from (children get no stdin).
+fn end_quietly_on_closed_pipe() {
+    #[cfg(unix)]
+    // SAFETY: sets a signal disposition to its default, before any other thread exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
+/// A usage error (exit 2, clap's message and usage line on stderr; with `--json` also as a
+/// JSON object on stdout). `--help` and `--version` print and exit 0 as clap does.
+fn usage_error(err: clap::Error) -> i32 {
+    use clap::error::ErrorKind;
+    if matches!(
+        err.kind(),
+        ErrorKind::DisplayHelp | ErrorKind::DisplayVersion
+    ) {
+        err.exit();
+    }
+    let code = err.exit_code();
+    let rendered = err.render().to_string();
+    // clap leaves the usage line out of some errors (a value its parser rejected): add it.
+    let text = if rendered.contains("Usage:") {
+        rendered
+    } else {
+        let hint = "For more information, try '--help'.";
+        format!(
+            "{}\n\n{}\n\n{hint}\n",
+            rendered.replace(hint, "").trim_end(),
+            usage_of_invoked_command()
+        )
+    };
+    if json_requested() {
+        let message = text
+            .lines()
+            .next()
+            .unwrap_or_default()
+            .trim_start_matches("error: ");
+        print_json(&serde_json::json!({
+            "error": message,
+            "exit_code": code,
+            "usage": text.trim_end(),
+        }));
+    }
+    eprint!("{text}");
+    code
+}
+
+/// The usage line of the (sub)command the arguments name, e.g. `Usage: psscan solve ...`.
+fn usage_of_invoked_command() -> String {
+    use clap::CommandFactory;
+    let mut command = Cli::command();
+    command.build();
+    let mut current = &command;
+    for arg in std::env::args().skip(1) {
+        if let Some(sub) = current.find_subcommand(&arg) {
+            current = sub;
+        }
+    }
+    current.clone().render_usage().to_string()
+}
+
+/// `--json` among the arguments (before any `--`), for errors found before parsing completes.
+fn json_requested() -> bool {
+    std::env::args_os()
+        .skip(1)
+        .take_while(|a| a != "--")
+        .any(|a| a == "--json")
+}
+
+/// The error and its causes, each cause only where the text so far does not already say it
+/// (an I/O error's message is both in psscan's own text and its source).
+fn error_text(err: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in err.chain() {
+        let part = cause.to_string();
+        if text.is_empty() {
+            text = part;
+        } else if !text.contains(&part) {
+            text.push_str(": ");
+            text.push_str(&part);
+        }
+    }
+    text
+}
+
+/// Set once a command has printed its JSON object, so a failure after it adds no second one.
+static JSON_PRINTED: AtomicBool = AtomicBool::new(false);
 
 fn load_rig(path: &Option<PathBuf>) -> psscan::Result<Rig> {
     match path {
@@ -398,6 +500,7 @@ fn load_rig(path: &Option<PathBuf>) -> psscan::Result<Rig> {
 }
 
 fn print_json<T: serde::Serialize>(value: &T) {
+    JSON_PRINTED.store(true, Ordering::Relaxed);
     println!(
         "{}",
         serde_json::to_string_pretty(value).expect("serialisable")
@@ -425,17 +528,13 @@ fn print_demo(s: &DemoSummary) {
         s.width, s.height, s.rig, s.lights, s.solved_pixels
     );
     println!(
-        "  normal error  mean {:.3} deg, median {:.3}, p95 {:.3} (sensor-noise model predicts mean {:.3})",
+        "  normal error  mean {:.3} deg, median {:.3}, p95 {:.3} (sensor-noise model predicts mean {})",
         s.normal_error_deg.mean,
         s.normal_error_deg.median,
         s.normal_error_deg.p95,
-        s.predicted_normal_error_deg.mean
+        deg_or_na(s.predicted_normal_error_deg.mean)
     );
-    println!(
-        "  albedo error  mean {:.2} %, median {:.2} %",
-        100.0 * s.albedo_rel_error.mean,
-        100.0 * s.albedo_rel_error.median
-    );
+    println!("  albedo error  {}", albedo_error_text(&s.albedo_rel_error));
     println!(
         "  time          render+write {:.1} s, decode {:.1} s, solve {:.1} s, write maps {:.1} s, total {:.1} s",
         t("synth_scene") + t("synth_render_and_write"),
@@ -444,6 +543,7 @@ fn print_demo(s: &DemoSummary) {
         t("solve_write"),
         t("total")
     );
+    print_warnings(&s.warnings);
     println!("  capture set   {}", s.paths.capture.display());
     println!("  maps          {}", s.paths.maps.display());
 }
@@ -499,7 +599,7 @@ fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         return Ok(());
     }
     let options = BatchOptions {
-        parallel_sets: args.parallel_sets.max(1),
+        parallel_sets: args.parallel_sets,
     };
     let summary = offline::solve_sets(&args.sets, &args.out, &job, options, bars);
     if json {
@@ -531,15 +631,16 @@ fn print_batch(summary: &BatchSummary) {
                     .map(|e| format!(", normal error {e:.3} deg against truth"))
                     .unwrap_or_default();
                 println!(
-                    "solved  {} -> {} ({}x{}, {} pixels, predicted {:.3} deg{truth}, {:.1} s)",
+                    "solved  {} -> {} ({}x{}, {} pixels, predicted {}{truth}, {:.1} s)",
                     o.set.display(),
                     o.out.display(),
                     s.width,
                     s.height,
                     s.solved_pixels,
-                    s.predicted_normal_error_deg,
+                    deg_or_na(s.predicted_normal_error_deg),
                     s.seconds
                 );
+                print_warnings(&s.warnings);
             }
             (None, error) => eprintln!(
                 "FAILED  {}: {}",
@@ -558,14 +659,14 @@ fn print_solve(set: &Path, out: &Path, report: &psscan::maps::Report) {
     let solved = report.pixels.get("solved").copied().unwrap_or(0);
     let total = report.width * report.height;
     println!(
-        "solved {}: {}x{}, {} of {} pixels ({:.2} %), predicted normal error {:.3} deg",
+        "solved {}: {}x{}, {} of {} pixels ({:.2} %), predicted normal error {}",
         set.display(),
         report.width,
         report.height,
         solved,
         total,
         100.0 * solved as f64 / total.max(1) as f64,
-        report.predicted_normal_error_deg.mean
+        deg_or_na(report.predicted_normal_error_deg.mean)
     );
     for (name, count) in &report.pixels {
         if *name != "solved" && *count > 0 {
@@ -574,10 +675,10 @@ fn print_solve(set: &Path, out: &Path, report: &psscan::maps::Report) {
     }
     if let Some(truth) = &report.truth {
         println!(
-            "  against ground truth: normal error mean {:.3} deg (p95 {:.3}), albedo error mean {:.2} %",
+            "  against ground truth: normal error mean {:.3} deg (p95 {:.3}), albedo error {}",
             truth.normal_error_deg.mean,
             truth.normal_error_deg.p95,
-            100.0 * truth.albedo_rel_error.mean
+            albedo_error_text(&truth.albedo_rel_error)
         );
     }
     if let Some(truth) = &report.normal_truth {
@@ -618,6 +719,7 @@ fn print_solve(set: &Path, out: &Path, report: &psscan::maps::Report) {
             decode.encoding, decode.method, decode.dark_frame
         );
     }
+    print_warnings(&report.warnings);
     println!(
         "  wrote {} in {:.1} s",
         out.display(),
@@ -625,10 +727,35 @@ fn print_solve(set: &Path, out: &Path, report: &psscan::maps::Report) {
     );
 }
 
-fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
-    if args.sizes.iter().any(|&s| !(s > 0.0 && s <= 64.0)) {
-        anyhow::bail!("--sizes: each size must be in (0, 64] megapixels");
+/// A predicted error in degrees, or `n/a` where it was not computed (NaN).
+pub(crate) fn deg_or_na(value: f64) -> String {
+    if value.is_finite() {
+        format!("{value:.3} deg")
+    } else {
+        "n/a".to_string()
     }
+}
+
+/// Mean and median relative albedo error, or why there is none.
+fn albedo_error_text(error: &psscan::eval::Stats) -> String {
+    if error.mean.is_finite() {
+        format!(
+            "mean {:.2} %, median {:.2} %",
+            100.0 * error.mean,
+            100.0 * error.median
+        )
+    } else {
+        "n/a (--normal-only: the albedo is the luminance, not solved per channel)".to_string()
+    }
+}
+
+fn print_warnings(warnings: &[String]) {
+    for w in warnings {
+        println!("  WARNING: {w}");
+    }
+}
+
+fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/numpy_ps.py");
     let numpy = !args.no_numpy && psscan::bench::numpy_available() && script.exists();
     if !args.no_numpy && !numpy {
@@ -640,7 +767,7 @@ fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     }
     let options = psscan::bench::BenchOptions {
         sizes_mp: args.sizes.clone(),
-        repeats: args.repeats.max(1),
+        repeats: args.repeats,
         numpy,
         numpy_script: script,
         scratch: std::env::temp_dir().join(format!("psscan-bench-{}", std::process::id())),

@@ -3,13 +3,19 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use serde::Serialize;
+use serde::{Serialize, Serializer};
 
-use super::WrittenMaps;
+use super::{MapOptions, WrittenMaps};
 use crate::error::Result;
-use crate::eval::TruthComparison;
+use crate::eval::{Stats, TruthComparison};
 use crate::fsutil::write_atomic;
-use crate::solve::{PixelFit, PixelStatus, SolveOptions, SolveResult};
+use crate::region::RegionInfo;
+use crate::solve::{Estimator, PixelFit, PixelStatus, SolveOptions, SolveResult};
+
+/// Share of the solved pixels failing the adaptive estimator's model test above which the
+/// summary warns: far above the test's false-alarm rate on clean data (a fraction of a
+/// percent), so the frames hold something the Lambertian model and the noise model do not.
+pub const MODEL_TEST_WARN_SHARE: f64 = 0.05;
 
 #[derive(Clone, Debug, Serialize)]
 pub struct Report {
@@ -19,6 +25,9 @@ pub struct Report {
     pub width: usize,
     pub height: usize,
     pub options: SolveOptions,
+    /// How the maps were written: the normal convention (`opengl`: +Y up, `directx`: +Y
+    /// down), which formats, and the display colour matrix of `albedo.png`.
+    pub maps: MapOptions,
     /// Pixel count per status (`solved`, `dark`, `saturated`, ...).
     pub pixels: BTreeMap<&'static str, usize>,
     /// Solved pixels per fit (`least_squares`, `robust`, `sheen`).
@@ -29,9 +38,20 @@ pub struct Report {
     /// The adaptive estimator found sheen and fitted the sheen model everywhere.
     pub sheen_everywhere: bool,
     pub residual_mean: f64,
+    /// Mean predicted normal error from sensor noise over the solved pixels; `null` where it
+    /// was not computed (the streaming kernel, `predict_error` off, or data without a noise
+    /// model such as DiLiGenT sets).
     pub predicted_normal_error_deg: Mean,
-    /// Errors against ground truth, when the capture set has it (synthetic sets).
-    #[serde(skip_serializing_if = "Option::is_none")]
+    /// What the reader should know about these maps: most pixels failing the model test,
+    /// errors the prediction does not cover. Each says what to try.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
+    /// Errors against ground truth, when the capture set has it (synthetic sets); no albedo
+    /// error for a `normal_only` solve.
+    #[serde(
+        skip_serializing_if = "Option::is_none",
+        serialize_with = "truth_without_unknown_albedo"
+    )]
     pub truth: Option<TruthComparison>,
     /// Crop, binning and background mask, when the solve did not cover every pixel.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -54,9 +74,75 @@ pub struct Report {
     pub calibration_cited_by_set: Option<crate::calibration::bundle::CalibrationRef>,
 }
 
+/// A mean; NaN (JSON `null`, "n/a" in the CLI) when it could not be computed.
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct Mean {
     pub mean: f64,
+}
+
+impl Mean {
+    /// Not computed.
+    pub const UNKNOWN: Mean = Mean { mean: f64::NAN };
+
+    pub fn is_known(&self) -> bool {
+        self.mean.is_finite()
+    }
+}
+
+/// Writes `truth` with `albedo_rel_error: null` where the albedo error is unknown (NaN).
+fn truth_without_unknown_albedo<S: Serializer>(
+    truth: &Option<TruthComparison>,
+    serializer: S,
+) -> std::result::Result<S::Ok, S::Error> {
+    let mut value = serde_json::to_value(truth).map_err(serde::ser::Error::custom)?;
+    if let Some(albedo) = value.get_mut("albedo_rel_error") {
+        if albedo["mean"].is_null() {
+            *albedo = serde_json::Value::Null;
+        }
+    }
+    value.serialize(serializer)
+}
+
+/// Mean predicted error over the solved pixels, or `None` when any of them has none (the
+/// solvers leave 0 where they do not compute it; an exact 0 from a noise model needs a
+/// sensor without noise, which no capture has).
+fn mean_predicted_error_deg(result: &SolveResult) -> Option<f64> {
+    let mut sum = 0.0;
+    let mut n = 0usize;
+    for (status, &e) in result.status.iter().zip(&result.predicted_error_deg.data) {
+        if *status != PixelStatus::Solved {
+            continue;
+        }
+        if !(e > 0.0 && e.is_finite()) {
+            return None;
+        }
+        sum += e as f64;
+        n += 1;
+    }
+    (n > 0).then(|| sum / n as f64)
+}
+
+/// The warning for a solve where many pixels failed the adaptive estimator's model test.
+fn model_test_warning(
+    result: &SolveResult,
+    options: &SolveOptions,
+    solved: usize,
+) -> Option<String> {
+    if options.estimator != Estimator::Adaptive || solved == 0 {
+        return None;
+    }
+    let share = result.escalated as f64 / solved as f64;
+    (share > MODEL_TEST_WARN_SHARE).then(|| {
+        format!(
+            "{:.1} % of the solved pixels fail the model test against the sensor noise: the \
+             frames hold cast shadows, sheen or highlights the Lambertian model does not \
+             explain, or the noise model is too tight for them; those pixels come from the \
+             robust fit, which leaves lights out and is less certain. Try --sheen-fit F0 ALPHA \
+             AMPLITUDE for cloth sheen, --model-error FRACTION (e.g. 0.02) for frames that \
+             depart from the noise model, and check the exposure and the dark frame",
+            100.0 * share
+        )
+    })
 }
 
 impl Report {
@@ -74,6 +160,9 @@ impl Report {
         let fits = PixelFit::ALL
             .iter()
             .map(|&f| (f.name(), result.count_fit(f)))
+            .collect();
+        let warnings = model_test_warning(result, options, result.count(PixelStatus::Solved))
+            .into_iter()
             .collect();
         let solved: Vec<usize> = (0..result.status.len())
             .filter(|&i| result.status[i] == PixelStatus::Solved)
@@ -94,14 +183,15 @@ impl Report {
             width: result.width,
             height: result.height,
             options: options.clone(),
+            maps: MapOptions::default(),
             pixels,
             fits,
             escalated: result.escalated,
             sheen_everywhere: result.sheen_everywhere,
             residual_mean,
-            predicted_normal_error_deg: Mean {
-                mean: result.mean_predicted_error_deg(),
-            },
+            predicted_normal_error_deg: mean_predicted_error_deg(result)
+                .map_or(Mean::UNKNOWN, |mean| Mean { mean }),
+            warnings,
             truth: None,
             region: None,
             timings_s: BTreeMap::new(),
@@ -111,6 +201,37 @@ impl Report {
             calibration: None,
             calibration_cited_by_set: None,
         }
+    }
+
+    /// Records the comparison with ground truth; a `normal_only` solve's albedo is the
+    /// luminance in every channel, so its albedo error is not reported.
+    pub fn set_truth(&mut self, mut truth: TruthComparison) {
+        if self.options.normal_only {
+            truth.albedo_rel_error = Stats {
+                mean: f64::NAN,
+                median: f64::NAN,
+                p95: f64::NAN,
+                max: f64::NAN,
+            };
+        }
+        self.truth = Some(truth);
+    }
+
+    /// Records the crop, binning and mask; a binned solve notes what its prediction leaves
+    /// out.
+    pub fn set_region(&mut self, region: RegionInfo) {
+        if region.bin > 1 {
+            self.warnings.push(
+                "--bin 2: the predicted error covers the sensor noise of the binned pixels \
+                 (a quarter of the variance) only. Where a 2x2 block straddles an edge of the \
+                 relief (thread edges, gaps) its four normals do not add up to one Lambertian \
+                 surface, and some lights graze part of the block: that error is not \
+                 predicted, and it dominates the mean there. Use full resolution for the final \
+                 maps"
+                    .to_string(),
+            );
+        }
+        self.region = Some(region);
     }
 
     pub fn to_json(&self) -> String {

@@ -303,15 +303,16 @@ mod tests {
     use super::*;
     use crate::raw::mosaic::Resolution;
 
-    fn shared(name: &str) -> std::path::PathBuf {
+    /// A RAW file shipped with the tests (tests/data/raw, sources and licences in its README).
+    fn shipped(name: &str) -> std::path::PathBuf {
         Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../shared/data/raw")
+            .join("tests/data/raw")
             .join(name)
     }
 
     #[test]
     fn the_real_canon_dng_decodes_with_its_levels_and_pattern() {
-        let path = shared("real-canon550d-colorchart.dng");
+        let path = shipped("real-canon550d-colorchart.dng");
         let raw = read_raw(&path).unwrap();
         let m = &raw.mosaic;
         assert_eq!(m.pattern_name(), "RGGB");
@@ -374,7 +375,7 @@ mod tests {
             "stripped-CanonRaw.cr3",
             "stripped-DNG.dng",
         ] {
-            let err = read_raw(&shared(name)).unwrap_err().to_string();
+            let err = read_raw(&shipped(name)).unwrap_err().to_string();
             assert!(err.contains(name), "{name}: {err}");
         }
     }
@@ -382,7 +383,7 @@ mod tests {
     #[test]
     fn empty_truncated_and_garbage_files_fail_cleanly_naming_the_file() {
         let dir = tempfile::tempdir().unwrap();
-        let real = std::fs::read(shared("real-canon550d-colorchart.dng")).unwrap();
+        let real = std::fs::read(shipped("real-canon550d-colorchart.dng")).unwrap();
         let cases: Vec<(&str, Vec<u8>)> = vec![
             ("empty.dng", Vec::new()),
             ("header-only.dng", real[..512].to_vec()),

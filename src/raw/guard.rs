@@ -407,7 +407,7 @@ mod tests {
     /// loop allocating or allocate 30 GB and abort the process.
     #[test]
     fn cr3_boxes_that_would_abort_the_decoder_are_refused() {
-        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/raw");
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/raw");
         let good = std::fs::read(dir.join("stripped-CanonRaw.cr3")).unwrap();
         assert_eq!(check_bmff(&good, 0, good.len(), 0), Ok(()));
         let corrupt = |at: usize, bytes: &[u8]| {
@@ -425,7 +425,7 @@ mod tests {
 
     #[test]
     fn a_real_file_passes_and_stripped_ones_are_judged_without_trouble() {
-        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/raw");
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/raw");
         let real = std::fs::read(dir.join("real-canon550d-colorchart.dng")).unwrap();
         assert_eq!(check_structure(&real), Ok(()));
         // The stripped files' headers are genuine but their data is gone: whichever way the

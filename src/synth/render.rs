@@ -223,6 +223,20 @@ impl<'a> Scene<'a> {
     }
 }
 
+/// Samples a shadow grid may hold to resolve the threads at a coarse step (4 bytes each).
+const MAX_RELIEF_GRID_CELLS: f64 = 16e6;
+
+/// Side of the shadow grid's cells for pixels `footprint` apart on the table, threads
+/// `thread_pitch` apart, over `area` (m^2). Half the footprint keeps fibre-scale shadows at
+/// full resolution. At a coarse `--step` the footprint outgrows the threads, and a grid that
+/// coarse smooths away the relief that casts the shadows (at step 16 nothing was shadowed):
+/// there the cell is a sixteenth of the pitch, or as fine as `MAX_RELIEF_GRID_CELLS` allows
+/// over the whole field (a tenth of the pitch over the default rig's full sensor).
+fn shadow_grid_cell(footprint: f64, thread_pitch: f64, area: f64) -> f64 {
+    let relief = (thread_pitch / 16.0).max((area / MAX_RELIEF_GRID_CELLS).sqrt());
+    (0.5 * footprint).min(relief).max(1e-6)
+}
+
 /// The height field resampled on a regular world grid around the visible sample, for
 /// marching shadow rays toward each LED.
 struct HeightGrid {
@@ -252,9 +266,12 @@ impl HeightGrid {
             .fold(f64::MAX, f64::min)
             .max(5f64.to_radians());
         let margin = (textile.max_height() - textile.min_height()) / lowest_elevation.tan() + 1e-3;
-        // Half the pixel footprint on the table keeps fibre-scale shadows.
         let footprint = window.step * (rig.camera.position_m[2] - rig.sample.z_m) / rig.camera.fx;
-        let cell = (0.5 * footprint).max(1e-6);
+        let cell = shadow_grid_cell(
+            footprint,
+            textile.thread_pitch_m,
+            (xmax - xmin + 2.0 * margin) * (ymax - ymin + 2.0 * margin),
+        );
         let x0 = xmin - margin;
         let y0 = ymin - margin;
         let nx = ((xmax - xmin + 2.0 * margin) / cell).ceil() as usize + 2;

@@ -1,0 +1,270 @@
+//! Every figure psscan prints is one it computed (issue 13): a predicted error it could not
+//! compute is "n/a" (JSON null), a `--normal-only` solve reports no albedo error, a solve where
+//! many pixels fail the model test says so and what to try, a binned solve says what its
+//! prediction leaves out, and report.json records how the maps were written.
+
+use std::path::{Path, PathBuf};
+use std::process::Output;
+use std::sync::OnceLock;
+
+mod common;
+
+use common::{json, psscan, s};
+use serde_json::Value;
+
+/// A Lambertian set and a shadows + sheen set, 96 x 64 pixels over the whole field.
+struct Sets {
+    _dir: tempfile::TempDir,
+    lambertian: PathBuf,
+    hard: PathBuf,
+}
+
+fn sets() -> &'static Sets {
+    static SETS: OnceLock<Sets> = OnceLock::new();
+    SETS.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let lambertian = dir.path().join("lambertian");
+        let hard = dir.path().join("hard");
+        let base = ["--width", "96", "--height", "64", "--step", "16", "--json"];
+        json(&psscan(
+            &[&["synth", "--out", s(&lambertian)], &base[..]].concat(),
+        ));
+        json(&psscan(
+            &[
+                &["synth", "--out", s(&hard), "--shadows", "--sheen"],
+                &base[..],
+            ]
+            .concat(),
+        ));
+        Sets {
+            _dir: dir,
+            lambertian,
+            hard,
+        }
+    })
+}
+
+/// `psscan solve SET --out <fresh> FLAGS`, once with `--json` and once for people: the
+/// report and the human summary.
+fn solve(set: &Path, flags: &[&str]) -> (Value, String) {
+    let out = tempfile::tempdir().unwrap();
+    let run = |name: &str, json_flag: &[&str]| -> Output {
+        let dir = out.path().join(name);
+        psscan(&[&["solve", s(set), "--out", s(&dir), "-q"], json_flag, flags].concat())
+    };
+    let report = json(&run("json", &["--json"]));
+    let human = run("human", &[]);
+    assert!(human.status.success());
+    (report, String::from_utf8(human.stdout).unwrap())
+}
+
+#[test]
+fn a_predicted_error_that_was_not_computed_is_na() {
+    let set = &sets().lambertian;
+    // The exact kernel computes it.
+    let (exact, text) = solve(set, &[]);
+    let predicted = exact["predicted_normal_error_deg"]["mean"]
+        .as_f64()
+        .unwrap();
+    assert!(predicted > 0.0);
+    assert!(
+        text.contains(&format!("predicted normal error {predicted:.3} deg")),
+        "{text}"
+    );
+    // The streaming kernel does not: null and "n/a", never 0.000.
+    for flags in [
+        &["--precision", "f32"][..],
+        &["--tile-tolerance", "0.01"][..],
+    ] {
+        let (fast, text) = solve(set, flags);
+        assert!(
+            fast["predicted_normal_error_deg"]["mean"].is_null(),
+            "{flags:?}"
+        );
+        assert!(
+            text.contains("predicted normal error n/a"),
+            "{flags:?}: {text}"
+        );
+        assert!(!text.contains("0.000 deg"), "{text}");
+    }
+}
+
+#[test]
+fn normal_only_reports_no_albedo_error() {
+    let set = &sets().lambertian;
+    let (full, _) = solve(set, &[]);
+    assert!(full["truth"]["albedo_rel_error"]["mean"].as_f64().unwrap() > 0.0);
+    let (only, text) = solve(set, &["--normal-only"]);
+    assert!(
+        only["truth"]["albedo_rel_error"].is_null(),
+        "{}",
+        only["truth"]
+    );
+    assert!(only["truth"]["normal_error_deg"]["mean"].as_f64().unwrap() > 0.0);
+    assert!(text.contains("albedo error n/a (--normal-only"), "{text}");
+    assert!(!text.contains("albedo error mean"), "{text}");
+}
+
+/// Share of the solved pixels the adaptive estimator escalated.
+fn failed_share(report: &Value) -> f64 {
+    report["escalated"].as_f64().unwrap() / report["pixels"]["solved"].as_f64().unwrap()
+}
+
+#[test]
+fn many_pixels_failing_the_model_test_are_reported_with_what_to_try() {
+    let (clean, text) = solve(&sets().lambertian, &[]);
+    // Sensor noise alone: the test's false alarms, a fraction of a percent.
+    assert!(failed_share(&clean) < 0.05, "{}", failed_share(&clean));
+    assert!(clean["warnings"].is_null(), "{}", clean["warnings"]);
+    assert!(!text.contains("WARNING"), "{text}");
+
+    let (hard, text) = solve(&sets().hard, &[]);
+    let share = failed_share(&hard);
+    assert!(share > 0.05, "{share}");
+    let warnings = hard["warnings"].as_array().expect("a warning");
+    let warning = warnings[0].as_str().unwrap();
+    assert!(
+        warning.starts_with(&format!(
+            "{:.1} % of the solved pixels fail the model test",
+            100.0 * share
+        )),
+        "{warning}"
+    );
+    for remedy in ["--sheen-fit", "--model-error"] {
+        assert!(warning.contains(remedy), "{warning}");
+    }
+    assert!(
+        text.contains("WARNING: ") && text.contains("fail the model test"),
+        "{text}"
+    );
+
+    // A batch names the warning beside the set it belongs to.
+    let out = tempfile::tempdir().unwrap();
+    let batch = json(&psscan(&[
+        "solve",
+        s(&sets().lambertian),
+        s(&sets().hard),
+        "--out",
+        s(out.path()),
+        "--json",
+        "-q",
+    ]));
+    let sets = batch["sets"].as_array().unwrap();
+    assert!(sets[0]["summary"]["warnings"].is_null(), "{}", sets[0]);
+    let warning = sets[1]["summary"]["warnings"][0].as_str().unwrap();
+    assert!(warning.contains("fail the model test"), "{warning}");
+}
+
+#[test]
+fn a_binned_solve_says_its_prediction_covers_noise_only() {
+    let set = &sets().lambertian;
+    let (whole, _) = solve(set, &["--estimator", "ls"]);
+    let (binned, text) = solve(set, &["--estimator", "ls", "--bin", "2"]);
+    // A mean of four: a quarter of the variance, half the predicted error.
+    let ratio = binned["predicted_normal_error_deg"]["mean"]
+        .as_f64()
+        .unwrap()
+        / whole["predicted_normal_error_deg"]["mean"]
+            .as_f64()
+            .unwrap();
+    assert!((ratio - 0.5).abs() < 0.05, "{ratio}");
+    let warnings = binned["warnings"].as_array().expect("a warning");
+    assert!(
+        warnings.iter().any(|w| w
+            .as_str()
+            .unwrap()
+            .starts_with("--bin 2: the predicted error covers")),
+        "{warnings:?}"
+    );
+    assert!(text.contains("WARNING: --bin 2"), "{text}");
+    assert!(whole["warnings"].is_null());
+}
+
+#[test]
+fn the_report_records_how_the_maps_were_written() {
+    let set = &sets().lambertian;
+    let (plain, _) = solve(set, &[]);
+    assert_eq!(plain["maps"]["normal_convention"], "opengl");
+    assert_eq!(plain["maps"]["png"], true);
+    assert_eq!(plain["maps"]["exr"], true);
+    let (dx, _) = solve(
+        set,
+        &[
+            "--directx",
+            "--no-png",
+            "--estimator",
+            "ls",
+            "--light-model",
+            "distant",
+        ],
+    );
+    assert_eq!(dx["maps"]["normal_convention"], "directx");
+    assert_eq!(dx["maps"]["png"], false);
+    assert_eq!(dx["options"]["estimator"], "ls");
+    assert_eq!(dx["options"]["light_model"], "distant");
+    // The same record in the file next to the maps.
+    let out = tempfile::tempdir().unwrap();
+    let dir = out.path().join("dx");
+    json(&psscan(&[
+        "solve",
+        s(set),
+        "--out",
+        s(&dir),
+        "--directx",
+        "-q",
+        "--json",
+    ]));
+    let written: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+    assert_eq!(written["maps"]["normal_convention"], "directx");
+    assert_eq!(written["maps"]["png"], true);
+}
+
+/// A DiLiGenT-layout set written here: a 16 x 16 Lambertian plane tilted toward +x (normal
+/// (0.2, 0, 0.98)), albedo 0.5, under six distant lights.
+fn write_diligent_set(dir: &Path) {
+    std::fs::create_dir_all(dir).unwrap();
+    let lights: [[f64; 3]; 6] = [
+        [0.0, 0.0, 1.0],
+        [0.5, 0.0, 0.866],
+        [-0.5, 0.0, 0.866],
+        [0.0, 0.5, 0.866],
+        [0.0, -0.5, 0.866],
+        [0.35, 0.35, 0.866],
+    ];
+    let n = {
+        let v = [0.2f64, 0.0, 0.98];
+        let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        v.map(|c| c / len)
+    };
+    let (mut names, mut directions, mut intensities) =
+        (String::new(), String::new(), String::new());
+    for (k, l) in lights.iter().enumerate() {
+        let len = (l[0] * l[0] + l[1] * l[1] + l[2] * l[2]).sqrt();
+        let l = l.map(|c| c / len);
+        let shade = 0.5 * (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]);
+        let value = (shade * 65535.0).round() as u16;
+        let name = format!("{:03}.png", k + 1);
+        image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::from_pixel(16, 16, image::Rgb([value; 3]))
+            .save(dir.join(&name))
+            .unwrap();
+        names.push_str(&format!("{name}\n"));
+        directions.push_str(&format!("{} {} {}\n", l[0], l[1], l[2]));
+        intensities.push_str("1 1 1\n");
+    }
+    std::fs::write(dir.join("filenames.txt"), names).unwrap();
+    std::fs::write(dir.join("light_directions.txt"), directions).unwrap();
+    std::fs::write(dir.join("light_intensities.txt"), intensities).unwrap();
+}
+
+#[test]
+fn a_diligent_set_has_no_predicted_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let set = tmp.path().join("plane");
+    write_diligent_set(&set);
+    // The benchmark's noise is unknown, so there is no prediction; the solve itself works.
+    let (report, text) = solve(&set, &["--estimator", "ls"]);
+    assert_eq!(report["pixels"]["solved"], 256);
+    assert!(report["predicted_normal_error_deg"]["mean"].is_null());
+    assert!(text.contains("predicted normal error n/a"), "{text}");
+}
