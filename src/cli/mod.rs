@@ -363,7 +363,7 @@ impl SolveFlags {
 
 /// Runs the CLI; returns the process exit code.
 pub fn run() -> i32 {
-    end_quietly_on_closed_pipe();
+    quiet_closed_pipe_panics();
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,
         Err(err) => return usage_error(err),
@@ -372,15 +372,20 @@ pub fn run() -> i32 {
     // the file, so the panic's own message is noise.
     psscan::raw::quiet_decoder_panics();
     let bars = Bars::new(cli.quiet);
-    let outcome = match &cli.command {
-        Command::Demo(args) => demo(args, cli.json, &bars),
-        Command::Synth(args) => synth(args, cli.json, &bars),
-        Command::Solve(args) => solve(args, cli.json, &bars),
-        Command::Capture(args) => capture::capture(args, cli.json, &bars),
-        Command::Lights(args) => capture::lights(args, cli.json),
-        Command::Calibrate(args) => calibrate::calibrate(args, cli.json, &bars),
-        Command::Bench(args) => bench(args, cli.json, &bars),
-    };
+    let finished = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        let outcome = dispatch(&cli, &bars);
+        exit_code(&cli, outcome)
+    }));
+    match finished {
+        Ok(code) => code,
+        // The reader of stdout went away (`| head`): the command has unwound, guards included.
+        Err(payload) if is_closed_pipe_message(panic_text(payload.as_ref())) => 141,
+        Err(payload) => std::panic::resume_unwind(payload),
+    }
+}
+
+/// Reports a command's outcome (the error on stderr, and as JSON with `--json`); its exit code.
+fn exit_code(cli: &Cli, outcome: anyhow::Result<()>) -> i32 {
     match outcome {
         Ok(()) => 0,
         Err(err) => {
@@ -401,15 +406,45 @@ pub fn run() -> i32 {
     }
 }
 
-/// Rust ignores SIGPIPE, so a print to a closed pipe (`psscan lights ports | head -0`) would
-/// panic; with the default disposition the process ends quietly, as other command-line tools
-/// do. Nothing psscan writes to is a pipe it needs an error from (children get no stdin).
-fn end_quietly_on_closed_pipe() {
-    #[cfg(unix)]
-    // SAFETY: sets a signal disposition to its default, before any other thread exists.
-    unsafe {
-        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+/// Runs the chosen command.
+fn dispatch(cli: &Cli, bars: &Bars) -> anyhow::Result<()> {
+    match &cli.command {
+        Command::Demo(args) => demo(args, cli.json, bars),
+        Command::Synth(args) => synth(args, cli.json, bars),
+        Command::Solve(args) => solve(args, cli.json, bars),
+        Command::Capture(args) => capture::capture(args, cli.json, bars),
+        Command::Lights(args) => capture::lights(args, cli.json),
+        Command::Calibrate(args) => calibrate::calibrate(args, cli.json, bars),
+        Command::Bench(args) => bench(args, cli.json, bars),
     }
+}
+
+/// Rust ignores SIGPIPE, so a print to a closed pipe (`psscan lights ports | head -0`) fails
+/// with EPIPE and `println!` panics. The process must not die by the signal instead: a command
+/// holding the LEDs or a staging folder has to unwind so its guards switch the LEDs off and
+/// remove what it staged. So the panic's message is silenced here, the command unwinds, and
+/// `run` turns it into the shell's exit code for SIGPIPE (141).
+fn quiet_closed_pipe_panics() {
+    let previous = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        if !is_closed_pipe_message(panic_text(info.payload())) {
+            previous(info);
+        }
+    }));
+}
+
+/// The text of a panic payload (`panic!` with a literal or a formatted message).
+fn panic_text(payload: &(dyn std::any::Any + Send)) -> &str {
+    payload
+        .downcast_ref::<String>()
+        .map(String::as_str)
+        .or_else(|| payload.downcast_ref::<&str>().copied())
+        .unwrap_or("")
+}
+
+/// Whether a panic is std's "failed printing to stdout/stderr: Broken pipe".
+fn is_closed_pipe_message(text: &str) -> bool {
+    text.starts_with("failed printing to std") && text.contains("Broken pipe")
 }
 
 /// A usage error (exit 2, clap's message and usage line on stderr; with `--json` also as a
