@@ -83,6 +83,8 @@ pub fn capture_synthetic(
     // A set being resumed has its truth already; one that must not be overwritten is
     // refused by the sequencer before anything is written.
     if !exists || options.force {
+        // The sequencer claims the folder too; claimed once per run, the truth stays.
+        crate::fsutil::claim_dir(dir, options.force, &[], &[])?;
         options.synthetic = Some(write_scene_truth(camera.scene(), spec, dir)?);
     }
     run_capture(dir, rig, lights, &mut camera, &options, interrupt, progress)
@@ -140,7 +142,13 @@ pub fn run_firmware_sim_demo(
     let capture_dir = out.join("capture");
     let maps_dir = out.join("maps");
     let sim_dir = out.join("firmware-sim");
-    create_dir_all(&sim_dir)?;
+    crate::fsutil::claim_dir(
+        out,
+        true,
+        &[],
+        &[pipeline::DEMO_CAPTURE, pipeline::DEMO_MAPS, "firmware-sim/"],
+    )?;
+    crate::fsutil::claim_dir(&sim_dir, true, &[], &["pins.log"])?;
     let pin_log_path = sim_dir.join("pins.log");
     let controller = EmulatedController::start(&pin_log_path, SerialOptions::default())?;
     let options = CaptureOptions {

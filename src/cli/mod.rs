@@ -7,6 +7,7 @@ mod calibrate;
 mod calibrate_steps;
 mod capture;
 mod progress;
+mod signals;
 
 use std::path::{Path, PathBuf};
 
@@ -348,6 +349,7 @@ impl SolveFlags {
             },
             rig: None,
             force: false,
+            inputs: Vec::new(),
             calibration: Default::default(),
             allow_calibration_mismatch: false,
             develop: DevelopOptions {
@@ -368,6 +370,7 @@ pub fn run() -> i32 {
     // the file, so the panic's own message is noise.
     psscan::raw::quiet_decoder_panics();
     let bars = Bars::new(cli.quiet);
+    signals::install(cli.command.describe(), bars.slot());
     let outcome = match &cli.command {
         Command::Demo(args) => demo(args, cli.json, &bars),
         Command::Synth(args) => synth(args, cli.json, &bars),
@@ -381,11 +384,26 @@ pub fn run() -> i32 {
         Ok(()) => 0,
         Err(err) => {
             eprintln!("psscan: error: {err:#}");
-            // 130: stopped by Ctrl-C, as shells report SIGINT.
+            // 130 / 143: stopped by SIGINT / SIGTERM, as shells report them.
             match err.downcast_ref::<psscan::Error>() {
-                Some(psscan::Error::Interrupted(_)) => 130,
+                Some(psscan::Error::Interrupted(_)) => signals::interrupted_exit_code(),
                 _ => 1,
             }
+        }
+    }
+}
+
+impl Command {
+    /// The command, for messages about the run ("stopped `psscan solve` ...").
+    fn describe(&self) -> &'static str {
+        match self {
+            Command::Demo(_) => "`psscan demo`",
+            Command::Synth(_) => "`psscan synth`",
+            Command::Solve(_) => "`psscan solve`",
+            Command::Capture(_) => "`psscan capture`",
+            Command::Lights(_) => "`psscan lights`",
+            Command::Calibrate(_) => "`psscan calibrate`",
+            Command::Bench(_) => "`psscan bench`",
         }
     }
 }
@@ -456,12 +474,14 @@ fn synth(args: &SynthArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         .as_deref()
         .map(psscan::calibration::bundle::read)
         .transpose()?;
-    let outcome = pipeline::write_synthetic_set_with(
+    let inputs: Vec<&Path> = args.rig.iter().chain(&args.calibration).map(|p| p.as_path()).collect();
+    let outcome = pipeline::write_synthetic_set_from(
         &rig,
         &spec,
         &args.out,
         args.force,
         bundle.as_ref(),
+        &inputs,
         bars,
     )?;
     if json {
@@ -482,6 +502,9 @@ fn synth(args: &SynthArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
 fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let mut job = args.solve.job()?;
     job.force = args.force;
+    // Every set of the run is an input of every solve in it (one set's output may not be, or
+    // sit inside, another set), and so is the rig file.
+    job.inputs = args.sets.iter().chain(&args.rig).cloned().collect();
     job.rig = args.rig.as_ref().map(|p| Rig::load(p)).transpose()?;
     job.calibration = match (&args.calibration, args.no_calibration) {
         (Some(dir), _) => CalibrationChoice::Bundle(dir.clone()),
@@ -638,6 +661,9 @@ fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
             script.display()
         );
     }
+    // The output folder is checked before the long run, and written whole at the end: it
+    // is the bench's own (replaced without --force), never a folder of other files.
+    psscan::fsutil::check_replaceable(&args.out, true, &[])?;
     let options = psscan::bench::BenchOptions {
         sizes_mp: args.sizes.clone(),
         repeats: args.repeats.max(1),
@@ -649,7 +675,9 @@ fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let result = psscan::bench::run(&options, bars);
     let _ = std::fs::remove_dir_all(&options.scratch);
     let result = result?;
-    psscan::bench::report::write(&result, &args.out)?;
+    let stage = psscan::fsutil::StagedDir::create(&args.out, true, &[])?;
+    psscan::bench::report::write(&result, stage.path())?;
+    stage.commit(true, &[])?;
     if json {
         print_json(&serde_json::json!({
             "result": result,
