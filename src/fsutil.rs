@@ -222,7 +222,8 @@ fn walk_foreign(root: &Path, rel: &str, record: &OwnedRecord) -> Result<Option<S
         }
         let sub = format!("{path}/");
         let found = if kind.is_dir() && record.entries.contains(&sub) {
-            foreign_entry(&entry.path())?.map(|inner| format!("has a sub-folder {sub} that {inner}"))
+            foreign_entry(&entry.path())?
+                .map(|inner| format!("has a sub-folder {sub} that {inner}"))
         } else if kind.is_dir() && record.entries.iter().any(|e| e.starts_with(&sub)) {
             walk_foreign(root, &path, record)?
         } else if kind.is_file() && record.entries.contains(&path) {
@@ -286,7 +287,10 @@ pub fn remove_stale_staging(target: &Path) {
     };
     for entry in entries.flatten() {
         let sibling = entry.file_name().to_string_lossy().into_owned();
-        let Some(rest) = sibling.strip_prefix(&name).and_then(|r| r.strip_prefix('.')) else {
+        let Some(rest) = sibling
+            .strip_prefix(&name)
+            .and_then(|r| r.strip_prefix('.'))
+        else {
             continue;
         };
         let kind = rest.split('-').next().unwrap_or_default();
@@ -420,7 +424,10 @@ pub fn check_replaceable(target: &Path, force: bool, inputs: &[&Path]) -> Result
 /// again in this run keeps what the run has written there since.
 pub fn claim_dir(target: &Path, force: bool, inputs: &[&Path], entries: &[&str]) -> Result<()> {
     let key = resolved(target);
-    let claimed = CLAIMED.lock().unwrap_or_else(|e| e.into_inner()).contains(&key);
+    let claimed = CLAIMED
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .contains(&key);
     if !claimed {
         check_replaceable(target, force, inputs)?;
         remove_stale_staging(target);
@@ -598,8 +605,14 @@ mod tests {
         // A user's file at the top, or inside a sub-folder psscan wrote: refused, kept.
         for extra in ["notes.txt", "sub/notes.txt"] {
             fs::write(out.join(extra), b"mine").unwrap();
-            let err = StagedDir::create(&out, true, &[]).err().unwrap().to_string();
-            assert!(err.contains(extra) && err.contains("did not write"), "{err}");
+            let err = StagedDir::create(&out, true, &[])
+                .err()
+                .unwrap()
+                .to_string();
+            assert!(
+                err.contains(extra) && err.contains("did not write"),
+                "{err}"
+            );
             assert_eq!(fs::read(out.join(extra)).unwrap(), b"mine");
             fs::remove_file(out.join(extra)).unwrap();
         }
@@ -610,11 +623,17 @@ mod tests {
             fs::copy(out.join(f), user.join(f)).unwrap();
         }
         fs::write(user.join("frame.png"), b"mine").unwrap();
-        let err = StagedDir::create(&user, true, &[]).err().unwrap().to_string();
+        let err = StagedDir::create(&user, true, &[])
+            .err()
+            .unwrap()
+            .to_string();
         assert!(err.contains("frame.png"), "{err}");
         // Without the record: not a psscan output.
         fs::remove_file(user.join(OWNED_FILE)).unwrap();
-        let err = StagedDir::create(&user, true, &[]).err().unwrap().to_string();
+        let err = StagedDir::create(&user, true, &[])
+            .err()
+            .unwrap()
+            .to_string();
         assert!(err.contains("not a psscan output"), "{err}");
         assert_eq!(fs::read_dir(&user).unwrap().count(), 2);
     }
@@ -632,7 +651,9 @@ mod tests {
             (dir.path().to_path_buf(), "holds an input"),
             (inside, "sits inside an input"),
         ] {
-            let err = check_replaceable(&out, true, &[&input]).unwrap_err().to_string();
+            let err = check_replaceable(&out, true, &[&input])
+                .unwrap_err()
+                .to_string();
             assert!(err.contains(why), "{}: {err}", out.display());
         }
         assert!(check_replaceable(&dir.path().join("maps"), true, &[&input]).is_ok());
@@ -643,9 +664,15 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("maps");
         // No process has id 0x7fff_fff0 (above Linux's pid_max); this process is alive.
-        let dead = dir.path().join(format!("maps.partial-{}-0", 0x7fff_fff0u32));
-        let live = dir.path().join(format!("maps.partial-{}-99", std::process::id()));
-        let other = dir.path().join(format!("maps2.partial-{}-0", 0x7fff_fff0u32));
+        let dead = dir
+            .path()
+            .join(format!("maps.partial-{}-0", 0x7fff_fff0u32));
+        let live = dir
+            .path()
+            .join(format!("maps.partial-{}-99", std::process::id()));
+        let other = dir
+            .path()
+            .join(format!("maps2.partial-{}-0", 0x7fff_fff0u32));
         for d in [&dead, &live, &other] {
             fs::create_dir(d).unwrap();
         }

@@ -312,7 +312,12 @@ pub fn whitesheet(args: &WhitesheetArgs, json: bool, bars: &Bars) -> anyhow::Res
         let base = out.parent().unwrap_or(Path::new("."));
         // The maps folder is this step's own (an earlier run's is replaced); it is staged,
         // and never a folder of other files nor one of the photographs' folders.
-        let inputs: Vec<&Path> = args.images.iter().chain(args.rig.paths()).map(|p| p.as_path()).collect();
+        let inputs: Vec<&Path> = args
+            .images
+            .iter()
+            .chain(args.rig.paths())
+            .map(|p| p.as_path())
+            .collect();
         let stage = StagedDir::create(&base.join(&maps), true, &inputs)?;
         steps::write_sheet_maps(stage.path(), &sheet)?;
         stage.commit(true, &inputs)?;
@@ -372,6 +377,23 @@ fn print_sheet(r: &WhiteSheetStep, start: &psscan::rig::Rig) {
 }
 
 pub fn bundle(args: &BundleArgs, json: bool) -> anyhow::Result<()> {
+    let named = [
+        &args.rig,
+        &args.camera,
+        &args.table,
+        &args.graychart,
+        &args.whitesheet,
+    ];
+    if let Some(out) = &args.out {
+        // Refused before any step is read; checked again (with the sheet's maps) below.
+        let read: Vec<&Path> = named
+            .iter()
+            .copied()
+            .flatten()
+            .map(|p| p.as_path())
+            .collect();
+        psscan::fsutil::check_replaceable(out, args.force, &read)?;
+    }
     let rig = load_rig(&args.rig)?;
     let inputs = BundleInputs {
         rig,
@@ -404,11 +426,18 @@ pub fn bundle(args: &BundleArgs, json: bool) -> anyhow::Result<()> {
         let base = path.parent().unwrap_or(Path::new("."));
         sheet.maps_dir.as_ref().map(|m| base.join(m))
     });
-    let read: Vec<&Path> = [&args.rig, &args.camera, &args.table, &args.graychart, &args.whitesheet, &sheet_maps]
-        .into_iter()
-        .flatten()
-        .map(|p| p.as_path())
-        .collect();
+    let read: Vec<&Path> = [
+        &args.rig,
+        &args.camera,
+        &args.table,
+        &args.graychart,
+        &args.whitesheet,
+        &sheet_maps,
+    ]
+    .into_iter()
+    .flatten()
+    .map(|p| p.as_path())
+    .collect();
     let stage = StagedDir::create(&dir, args.force, &read)?;
     let (index, _) = steps::assemble_bundle(&inputs, stage.path(), &name, true)?;
     stage.commit(args.force, &read)?;

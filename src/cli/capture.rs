@@ -159,7 +159,12 @@ pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()
     let interrupt = interrupt_on_ctrl_c()?;
     // The set may not be written into or over the rig file or bundle it is shot with (the
     // rest of the rule is applied where the set is opened).
-    let read: Vec<&Path> = args.rig.iter().chain(&args.calibration).map(PathBuf::as_path).collect();
+    let read: Vec<&Path> = args
+        .rig
+        .iter()
+        .chain(&args.calibration)
+        .map(PathBuf::as_path)
+        .collect();
     psscan::fsutil::check_outside_inputs(&args.out, &read)?;
     let resuming = args.resume && args.out.join("manifest.toml").is_file();
     let bundle = match &args.calibration {

@@ -474,7 +474,12 @@ fn synth(args: &SynthArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         .as_deref()
         .map(psscan::calibration::bundle::read)
         .transpose()?;
-    let inputs: Vec<&Path> = args.rig.iter().chain(&args.calibration).map(|p| p.as_path()).collect();
+    let inputs: Vec<&Path> = args
+        .rig
+        .iter()
+        .chain(&args.calibration)
+        .map(|p| p.as_path())
+        .collect();
     let outcome = pipeline::write_synthetic_set_from(
         &rig,
         &spec,

@@ -1,5 +1,5 @@
-//! SIGINT and SIGTERM for every command. Both are blocked in every thread and taken by one
-//! watcher thread (`sigwait`), which knows which signal came. Commands that stop on their own
+//! SIGINT and SIGTERM for every command. A handler passes the signal's number through a pipe
+//! to one watcher thread, which does the work (a handler may do almost nothing safely). Commands that stop on their own
 //! between steps (capture, the calibration wizard, the firmware demo) get the first signal as
 //! their `Interrupt` (LEDs off, frames kept, `--resume` named); everything else, and a second
 //! signal, stops at once: progress bar cleared, cursor shown, everything staged removed, what
@@ -22,31 +22,47 @@ static COOPERATIVE: OnceLock<Interrupt> = OnceLock::new();
 /// What the run is doing, for the message when it is stopped.
 static DOING: Mutex<String> = Mutex::new(String::new());
 
-/// Blocks SIGINT and SIGTERM in this thread (and so in every thread started after it) and
-/// starts the watcher. Call first, before any other thread exists. Child processes start with
-/// an empty signal mask (the standard library resets it), so they still get the signals.
-pub fn install(command: &str, bars: BarSlot) {
-    *DOING.lock().unwrap() = command.to_string();
-    let set = signal_set();
-    // SAFETY: a valid, initialised signal set; only the calling thread's mask changes.
+/// The write end of the pipe the signal handler reports on.
+static PIPE_WRITE: AtomicI32 = AtomicI32::new(-1);
+
+/// The handler: only async-signal-safe work, one byte (the signal number) into the pipe.
+extern "C" fn on_signal(signal: libc::c_int) {
+    let byte = signal as u8;
+    // SAFETY: write(2) is async-signal-safe; the pipe outlives the process.
     unsafe {
-        libc::pthread_sigmask(libc::SIG_BLOCK, &set, std::ptr::null_mut());
+        libc::write(
+            PIPE_WRITE.load(Ordering::Relaxed),
+            (&byte as *const u8).cast(),
+            1,
+        );
     }
-    std::thread::Builder::new()
-        .name("signals".into())
-        .spawn(move || watch(set, bars))
-        .expect("the signal thread starts");
 }
 
-fn signal_set() -> libc::sigset_t {
-    // SAFETY: sigemptyset initialises the set before sigaddset uses it.
+/// Installs handlers for SIGINT and SIGTERM that hand the signal to a watcher thread (through
+/// a pipe), and starts the watcher.
+pub fn install(command: &str, bars: BarSlot) {
+    *DOING.lock().unwrap() = command.to_string();
+    let mut fds = [0; 2];
+    // SAFETY: pipe fills the two descriptors; sigaction gets an initialised struct whose
+    // handler only writes to the pipe.
     unsafe {
-        let mut set = std::mem::zeroed::<libc::sigset_t>();
-        libc::sigemptyset(&mut set);
-        libc::sigaddset(&mut set, libc::SIGINT);
-        libc::sigaddset(&mut set, libc::SIGTERM);
-        set
+        if libc::pipe(fds.as_mut_ptr()) != 0 {
+            return;
+        }
+        PIPE_WRITE.store(fds[1], Ordering::Relaxed);
+        let mut action = std::mem::zeroed::<libc::sigaction>();
+        action.sa_sigaction = on_signal as extern "C" fn(libc::c_int) as libc::sighandler_t;
+        action.sa_flags = libc::SA_RESTART;
+        libc::sigemptyset(&mut action.sa_mask);
+        for signal in [libc::SIGINT, libc::SIGTERM] {
+            libc::sigaction(signal, &action, std::ptr::null_mut());
+        }
     }
+    let read_end = fds[0];
+    std::thread::Builder::new()
+        .name("signals".into())
+        .spawn(move || watch(read_end, bars))
+        .expect("the signal thread starts");
 }
 
 /// The token the library polls; the first signal sets it instead of stopping the process.
@@ -71,13 +87,15 @@ fn name(signal: i32) -> &'static str {
     }
 }
 
-fn watch(set: libc::sigset_t, bars: BarSlot) {
+fn watch(read_end: libc::c_int, bars: BarSlot) {
     loop {
-        let mut signal = 0;
-        // SAFETY: `set` is initialised; sigwait writes the signal taken into `signal`.
-        if unsafe { libc::sigwait(&set, &mut signal) } != 0 {
+        let mut byte = 0u8;
+        // SAFETY: reads one byte into a live local.
+        let n = unsafe { libc::read(read_end, (&mut byte as *mut u8).cast(), 1) };
+        if n != 1 {
             continue;
         }
+        let signal = i32::from(byte);
         let first = RECEIVED.swap(signal, Ordering::SeqCst) == 0;
         if let (true, Some(stop)) = (first, COOPERATIVE.get()) {
             stop.set();
@@ -103,7 +121,11 @@ fn stop_now(signal: i32, bars: &BarSlot) -> ! {
     }
     let removed = psscan::fsutil::remove_staging();
     let doing = DOING.lock().map(|d| d.clone()).unwrap_or_default();
-    let _ = writeln!(err, "psscan: {}: stopped {doing} before it finished", name(signal));
+    let _ = writeln!(
+        err,
+        "psscan: {}: stopped {doing} before it finished",
+        name(signal)
+    );
     for path in &removed {
         let _ = writeln!(err, "  removed unfinished {}", path.display());
     }
