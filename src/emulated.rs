@@ -15,7 +15,6 @@ use crate::capture::emulator::{Emulator, EmulatorFiles, PinLog};
 use crate::capture::lights::{FirmwareInfo, SerialLights, SerialOptions, SharedLights};
 use crate::capture::{run_capture, CaptureOptions, CaptureReport, Interrupt, SyntheticInfo};
 use crate::error::Result;
-use crate::fsutil::create_dir_all;
 use crate::maps::{self, report::Mean, WrittenMaps};
 use crate::pipeline::{self, DemoPaths, SolveJob, SPEC_FILE, TRUTH_DIR};
 use crate::progress::Progress;
@@ -54,9 +53,10 @@ impl EmulatedController {
 }
 
 /// Writes the scene's ground truth into a capture set folder (for `psscan solve` to compare
-/// against) and returns what the manifest records about it.
+/// against) and returns what the manifest records about it. The folder must be new, empty,
+/// or already claimed by this run for a new set (see `fsutil::claim_dir`).
 pub fn write_scene_truth(scene: &Scene, spec: &SynthSpec, dir: &Path) -> Result<SyntheticInfo> {
-    create_dir_all(dir)?;
+    crate::fsutil::claim_dir(dir, false, &[], &[])?;
     pipeline::write_truth(scene, spec, dir)?;
     Ok(SyntheticInfo {
         truth_dir: TRUTH_DIR.into(),
