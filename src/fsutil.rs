@@ -47,6 +47,17 @@ fn unregister(path: &Path) {
     staging().retain(|p| p != path);
 }
 
+/// Registers a scratch folder or file the run removes when done (a benchmark's temporary
+/// sets): a signal handler removes it too ([`remove_staging`]).
+pub fn register_scratch(path: &Path) {
+    register(path);
+}
+
+/// The run removed (or kept) its scratch `path` itself.
+pub fn unregister_scratch(path: &Path) {
+    unregister(path);
+}
+
 /// Removes everything this process is staging (for a signal handler: the run stops, and no
 /// half-written output may stay). Holds the registry while it works, so a stage that is
 /// being renamed into place finishes first and no new one starts. Returns what it removed.

@@ -677,8 +677,10 @@ fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         scratch: std::env::temp_dir().join(format!("psscan-bench-{}", std::process::id())),
         speed_only: args.speed_only,
     };
+    psscan::fsutil::register_scratch(&options.scratch);
     let result = psscan::bench::run(&options, bars);
     let _ = std::fs::remove_dir_all(&options.scratch);
+    psscan::fsutil::unregister_scratch(&options.scratch);
     let result = result?;
     let stage = psscan::fsutil::StagedDir::create(&args.out, true, &[])?;
     psscan::bench::report::write(&result, stage.path())?;
