@@ -15,7 +15,6 @@ use crate::capture::emulator::{Emulator, EmulatorFiles, PinLog};
 use crate::capture::lights::{FirmwareInfo, SerialLights, SerialOptions, SharedLights};
 use crate::capture::{run_capture, CaptureOptions, CaptureReport, Interrupt, SyntheticInfo};
 use crate::error::Result;
-use crate::fsutil::create_dir_all;
 use crate::maps::{self, report::Mean, WrittenMaps};
 use crate::pipeline::{self, DemoPaths, SolveJob, SPEC_FILE, TRUTH_DIR};
 use crate::progress::Progress;
@@ -54,9 +53,10 @@ impl EmulatedController {
 }
 
 /// Writes the scene's ground truth into a capture set folder (for `psscan solve` to compare
-/// against) and returns what the manifest records about it.
+/// against) and returns what the manifest records about it. The folder must be new, empty,
+/// or already claimed by this run for a new set (see `fsutil::claim_dir`).
 pub fn write_scene_truth(scene: &Scene, spec: &SynthSpec, dir: &Path) -> Result<SyntheticInfo> {
-    create_dir_all(dir)?;
+    crate::fsutil::claim_dir(dir, false, &[], &[])?;
     pipeline::write_truth(scene, spec, dir)?;
     Ok(SyntheticInfo {
         truth_dir: TRUTH_DIR.into(),
@@ -83,6 +83,8 @@ pub fn capture_synthetic(
     // A set being resumed has its truth already; one that must not be overwritten is
     // refused by the sequencer before anything is written.
     if !exists || options.force {
+        // The sequencer claims the folder too; claimed once per run, the truth stays.
+        crate::fsutil::claim_dir(dir, options.force, &[], &[])?;
         options.synthetic = Some(write_scene_truth(camera.scene(), spec, dir)?);
     }
     run_capture(dir, rig, lights, &mut camera, &options, interrupt, progress)
@@ -140,7 +142,13 @@ pub fn run_firmware_sim_demo(
     let capture_dir = out.join("capture");
     let maps_dir = out.join("maps");
     let sim_dir = out.join("firmware-sim");
-    create_dir_all(&sim_dir)?;
+    crate::fsutil::claim_dir(
+        out,
+        true,
+        &[],
+        &[pipeline::DEMO_CAPTURE, pipeline::DEMO_MAPS, "firmware-sim/"],
+    )?;
+    crate::fsutil::claim_dir(&sim_dir, true, &[], &["pins.log"])?;
     let pin_log_path = sim_dir.join("pins.log");
     let controller = EmulatedController::start(&pin_log_path, SerialOptions::default())?;
     let options = CaptureOptions {

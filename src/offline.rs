@@ -127,7 +127,8 @@ fn solve_diligent_into(
             dir.display()
         )));
     }
-    let stage = StagedDir::create(out, job.force, maps::REPORT_FILE)?;
+    let inputs = job.input_paths(dir);
+    let stage = StagedDir::create(out, job.force, &inputs)?;
     let mut timings = BTreeMap::new();
     let start = Instant::now();
     let set = DiligentSet::open(dir)?;
@@ -193,7 +194,7 @@ fn solve_diligent_into(
     timings.insert("total".into(), total.elapsed().as_secs_f64());
     report.timings_s = timings;
     report.write(&stage.path().join(maps::REPORT_FILE))?;
-    stage.commit(job.force, maps::REPORT_FILE)?;
+    stage.commit(job.force, &inputs)?;
     *buffers = Some(result);
     Ok(report)
 }

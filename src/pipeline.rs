@@ -13,7 +13,7 @@ use crate::capture::{
 };
 use crate::error::{Error, Result};
 use crate::eval::{self, Stats};
-use crate::fsutil::{create_dir_all, write_atomic, StagedDir};
+use crate::fsutil::{claim_dir, create_dir_all, record_owned, write_atomic, StagedDir};
 use crate::maps::{self, report::Mean, MapOptions, Report, WrittenMaps};
 use crate::plane::{Frames, Mask, Plane, RgbPlanes, SensorWindow};
 use crate::progress::{Progress, Silent};
@@ -98,6 +98,36 @@ pub fn write_synthetic_set_with(
     calibration: Option<&crate::calibration::bundle::Bundle>,
     progress: &dyn Progress,
 ) -> Result<SynthOutcome> {
+    write_synthetic_set_from(rig, spec, dir, force, calibration, &[], progress)
+}
+
+/// [`write_synthetic_set_with`] for a run that reads `inputs` (the rig file, the bundle): the
+/// set may not be written into or over any of them. The set is built beside `dir` and renamed
+/// into place when complete, so an interrupted render leaves no half-written set.
+pub fn write_synthetic_set_from(
+    rig: &Rig,
+    spec: &SynthSpec,
+    dir: &Path,
+    force: bool,
+    calibration: Option<&crate::calibration::bundle::Bundle>,
+    inputs: &[&Path],
+    progress: &dyn Progress,
+) -> Result<SynthOutcome> {
+    let stage = StagedDir::create(dir, force, inputs)?;
+    let mut outcome = render_synthetic_set(rig, spec, stage.path(), calibration, progress)?;
+    stage.commit(force, inputs)?;
+    outcome.dir = dir.to_path_buf();
+    Ok(outcome)
+}
+
+/// Renders and writes the set into the new folder `dir` (a stage).
+fn render_synthetic_set(
+    rig: &Rig,
+    spec: &SynthSpec,
+    dir: &Path,
+    calibration: Option<&crate::calibration::bundle::Bundle>,
+    progress: &dyn Progress,
+) -> Result<SynthOutcome> {
     if let Some(b) = calibration {
         if b.rig.leds.len() != rig.leds.len() {
             return Err(Error::Invalid(format!(
@@ -160,7 +190,7 @@ pub fn write_synthetic_set_with(
         }
     };
     let stored_rig = calibration.map_or(rig, |b| &b.rig);
-    let mut writer = CaptureSetWriter::create(dir, stored_rig, image, camera, force)?;
+    let mut writer = CaptureSetWriter::create(dir, stored_rig, image, camera, true)?;
     if let Some(b) = calibration {
         writer.set_calibration(b.citation())?;
     }
@@ -207,6 +237,10 @@ pub fn write_synthetic_set_with(
 pub fn write_truth(scene: &Scene, spec: &SynthSpec, dir: &Path) -> Result<()> {
     let truth_dir = dir.join(TRUTH_DIR);
     create_dir_all(&truth_dir)?;
+    record_owned(
+        dir,
+        ["normal.exr", "albedo.exr", "height.exr", "spec.toml"].map(|f| format!("{TRUTH_DIR}/{f}")),
+    )?;
     let t = &scene.truth;
     maps::write::write_exr(
         &truth_dir.join("normal.exr"),
@@ -350,6 +384,9 @@ pub struct SolveJob {
     pub rig: Option<Rig>,
     /// Overwrite an existing solve in the output folder.
     pub force: bool,
+    /// Other paths this run reads (the other sets of a batch, the rig file, the bundle): the
+    /// output may not be, hold or sit inside any of them, nor inside the set solved.
+    pub inputs: Vec<PathBuf>,
     /// How frames are developed (resolution, dark-frame subtraction).
     pub develop: DevelopOptions,
     /// The part of the frames to solve (crop, binning, background mask).
@@ -358,6 +395,19 @@ pub struct SolveJob {
     pub calibration: CalibrationChoice,
     /// Solve with a bundle other than the one the set cites (its id or checksum differ).
     pub allow_calibration_mismatch: bool,
+}
+
+impl SolveJob {
+    /// Every input of a solve of `set` with this job: the set, the job's other inputs and the
+    /// bundle it names.
+    pub fn input_paths<'a>(&'a self, set: &'a Path) -> Vec<&'a Path> {
+        let mut inputs = vec![set];
+        inputs.extend(self.inputs.iter().map(PathBuf::as_path));
+        if let CalibrationChoice::Bundle(dir) = &self.calibration {
+            inputs.push(dir);
+        }
+        inputs
+    }
 }
 
 /// Where a solve's rig comes from when no rig is given explicitly.
@@ -605,13 +655,15 @@ pub fn solve_capture_set_reusing(
     buffers: &mut Option<solve::SolveResult>,
 ) -> Result<Report> {
     let total = Instant::now();
-    let stage = StagedDir::create(out, job.force, maps::REPORT_FILE)?;
+    let inputs = job.input_paths(dir);
+    let stage = StagedDir::create(out, job.force, &inputs)?;
     let mut timings = BTreeMap::new();
 
     let start = Instant::now();
     let mut set = CaptureSet::open(dir, job.rig.clone())?;
     let calibration = resolve_calibration(&set, job)?;
     if let Some(bundle) = &calibration {
+        crate::fsutil::check_outside_inputs(out, &[&bundle.citation().path])?;
         set.rig = bundle.rig.clone();
     }
     let loaded = set.load_frames_with(&job.develop, progress)?;
@@ -672,7 +724,7 @@ pub fn solve_capture_set_reusing(
     timings.insert("total".into(), total.elapsed().as_secs_f64());
     report.timings_s = timings;
     report.write(&stage.path().join(maps::REPORT_FILE))?;
-    stage.commit(job.force, maps::REPORT_FILE)?;
+    stage.commit(job.force, &inputs)?;
     *buffers = Some(result);
     Ok(report)
 }
@@ -757,9 +809,15 @@ pub struct DemoPaths {
     pub outputs: WrittenMaps,
 }
 
+/// The demo folder's entries, as its ownership record lists them (sub-folders with records
+/// of their own).
+pub const DEMO_CAPTURE: &str = "capture/";
+pub const DEMO_MAPS: &str = "maps/";
+
 /// Renders the synthetic textile with the embedded default rig into `out/capture`, solves it
 /// into `out/maps`, and compares with the ground truth. The demo's folder is its own scratch
-/// space: earlier demo output there is replaced.
+/// space: an earlier demo's output there is replaced as a whole (first removed, so an
+/// interrupted demo never leaves new frames beside old maps); any other folder is refused.
 pub fn run_demo(
     out: &Path,
     spec: &SynthSpec,
@@ -770,6 +828,7 @@ pub fn run_demo(
     let rig = Rig::default_rig();
     let capture = out.join("capture");
     let maps_dir = out.join("maps");
+    claim_dir(out, true, &[], &[DEMO_CAPTURE, DEMO_MAPS])?;
     let synth = write_synthetic_set(&rig, spec, &capture, true, progress)?;
     let job = SolveJob {
         force: true,

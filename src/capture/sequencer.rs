@@ -319,7 +319,9 @@ fn open_set(
             )
         });
     }
-    remove_scratch_files(dir);
+    // A new set: the folder must be new, empty or psscan's own (an old set, with --force);
+    // the old set is removed as a whole, never mixed with the new one.
+    crate::fsutil::claim_dir(dir, options.force, &[], &[])?;
     let mut writer = CaptureSetWriter::create(dir, rig, image, CameraSettings::default(), true)?;
     if let Some(info) = &options.synthetic {
         writer.set_synthetic(info.clone())?;

@@ -10,7 +10,7 @@ use super::manifest::{
     MANIFEST_FILE, VERSION,
 };
 use crate::error::{Error, Result};
-use crate::fsutil::{create_dir_all, sha256_hex, write_atomic};
+use crate::fsutil::{create_dir_all, record_owned, sha256_hex, write_atomic};
 use crate::plane::Frames;
 use crate::progress::Progress;
 use crate::raw::{
@@ -50,6 +50,9 @@ impl CaptureSetWriter {
             });
         }
         create_dir_all(dir)?;
+        // Recorded before they are written: a folder psscan stopped in half-way still counts
+        // as psscan's, so `--force` may start it over.
+        record_owned(dir, [MANIFEST_FILE, RIG_FILE])?;
         rig.save(&dir.join(RIG_FILE))?;
         let writer = CaptureSetWriter {
             dir: dir.to_path_buf(),
@@ -114,6 +117,7 @@ impl CaptureSetWriter {
         file: &str,
         bytes: &[u8],
     ) -> Result<()> {
+        record_owned(&self.dir, [file])?;
         write_atomic(&self.dir.join(file), bytes)?;
         let entry = FrameEntry {
             kind,

@@ -16,7 +16,7 @@ use psscan::calibration::camera::{Board, CameraCalibration};
 use psscan::calibration::files::{self, LINEAR_EXTENSIONS, RAW_EXTENSIONS};
 use psscan::calibration::graychart::{ChartDescription, ChartRect, ChartReport};
 use psscan::calibration::steps::{self, BundleInputs, TableStep, WhiteSheetStep};
-use psscan::fsutil::write_atomic;
+use psscan::fsutil::{write_atomic, StagedDir};
 
 use super::calibrate::BoardArgs;
 use super::progress::Bars;
@@ -57,6 +57,11 @@ pub struct RigArgs {
 }
 
 impl RigArgs {
+    /// The files these options name (inputs of the step).
+    fn paths(&self) -> impl Iterator<Item = &PathBuf> {
+        self.rig.iter().chain(&self.camera).chain(&self.table)
+    }
+
     fn rig(&self) -> anyhow::Result<psscan::rig::Rig> {
         let hand = load_rig(&self.rig)?;
         let camera: Option<CameraCalibration> = self
@@ -314,7 +319,17 @@ pub fn whitesheet(args: &WhitesheetArgs, json: bool, bars: &Bars) -> anyhow::Res
             .unwrap_or_else(|| "whitesheet".into());
         let maps = PathBuf::from(format!("{stem}-maps"));
         let base = out.parent().unwrap_or(Path::new("."));
-        steps::write_sheet_maps(&base.join(&maps), &sheet)?;
+        // The maps folder is this step's own (an earlier run's is replaced); it is staged,
+        // and never a folder of other files nor one of the photographs' folders.
+        let inputs: Vec<&Path> = args
+            .images
+            .iter()
+            .chain(args.rig.paths())
+            .map(|p| p.as_path())
+            .collect();
+        let stage = StagedDir::create(&base.join(&maps), true, &inputs)?;
+        steps::write_sheet_maps(stage.path(), &sheet)?;
+        stage.commit(true, &inputs)?;
         result.maps_dir = Some(maps);
         write_toml(out, &result)?;
     }
@@ -371,6 +386,23 @@ fn print_sheet(r: &WhiteSheetStep, start: &psscan::rig::Rig) {
 }
 
 pub fn bundle(args: &BundleArgs, json: bool) -> anyhow::Result<()> {
+    let named = [
+        &args.rig,
+        &args.camera,
+        &args.table,
+        &args.graychart,
+        &args.whitesheet,
+    ];
+    if let Some(out) = &args.out {
+        // Refused before any step is read; checked again (with the sheet's maps) below.
+        let read: Vec<&Path> = named
+            .iter()
+            .copied()
+            .flatten()
+            .map(|p| p.as_path())
+            .collect();
+        psscan::fsutil::check_replaceable(out, args.force, &read)?;
+    }
     let rig = load_rig(&args.rig)?;
     let inputs = BundleInputs {
         rig,
@@ -398,7 +430,26 @@ pub fn bundle(args: &BundleArgs, json: bool) -> anyhow::Result<()> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from("calibration").join(&rig_name).join(&name));
-    let (index, _) = steps::assemble_bundle(&inputs, &dir, &name, args.force)?;
+    // Staged: a bundle appears whole or not at all, and replaces only a psscan bundle.
+    let sheet_maps = inputs.whitesheet.as_ref().and_then(|(path, sheet)| {
+        let base = path.parent().unwrap_or(Path::new("."));
+        sheet.maps_dir.as_ref().map(|m| base.join(m))
+    });
+    let read: Vec<&Path> = [
+        &args.rig,
+        &args.camera,
+        &args.table,
+        &args.graychart,
+        &args.whitesheet,
+        &sheet_maps,
+    ]
+    .into_iter()
+    .flatten()
+    .map(|p| p.as_path())
+    .collect();
+    let stage = StagedDir::create(&dir, args.force, &read)?;
+    let (index, _) = steps::assemble_bundle(&inputs, stage.path(), &name, true)?;
+    stage.commit(args.force, &read)?;
     if json {
         print_json(&serde_json::json!({
             "bundle": dir,

@@ -20,20 +20,11 @@ use serde::Serialize;
 use super::progress::Bars;
 use super::{load_rig, print_json, SceneArgs};
 
-/// Installs the Ctrl-C handler: the first press asks the library to stop (the LED keepalive
-/// thread switches the LEDs off at once); a second press exits on the spot.
+/// The stop token of a command that stops on its own: the first SIGINT or SIGTERM asks the
+/// library to stop (the LED keepalive thread switches the LEDs off at once); a second one
+/// exits on the spot (see `signals`).
 pub fn interrupt_on_ctrl_c() -> anyhow::Result<Interrupt> {
-    let interrupt = Interrupt::new();
-    let flag = interrupt.clone();
-    ctrlc::set_handler(move || {
-        if flag.is_set() {
-            eprintln!("psscan: second Ctrl-C, exiting now");
-            std::process::exit(130);
-        }
-        flag.set();
-        eprintln!("psscan: Ctrl-C: switching the LEDs off and stopping (Ctrl-C again to quit now)");
-    })?;
-    Ok(interrupt)
+    Ok(super::signals::cooperative())
 }
 
 /// How to reach the LED controller (shared by `capture` and `lights`).
@@ -168,6 +159,15 @@ pub struct CaptureArgs {
 
 pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let interrupt = interrupt_on_ctrl_c()?;
+    // The set may not be written into or over the rig file or bundle it is shot with (the
+    // rest of the rule is applied where the set is opened).
+    let read: Vec<&Path> = args
+        .rig
+        .iter()
+        .chain(&args.calibration)
+        .map(PathBuf::as_path)
+        .collect();
+    psscan::fsutil::check_outside_inputs(&args.out, &read)?;
     let resuming = args.resume && args.out.join("manifest.toml").is_file();
     let bundle = match &args.calibration {
         Some(dir) if !resuming => Some(psscan::calibration::bundle::read(dir)?),

@@ -7,6 +7,7 @@ mod calibrate;
 mod calibrate_steps;
 mod capture;
 mod progress;
+mod signals;
 mod values;
 
 use std::path::{Path, PathBuf};
@@ -348,6 +349,7 @@ impl SolveFlags {
             },
             rig: None,
             force: false,
+            inputs: Vec::new(),
             calibration: Default::default(),
             allow_calibration_mismatch: false,
             develop: DevelopOptions {
@@ -372,6 +374,7 @@ pub fn run() -> i32 {
     // the file, so the panic's own message is noise.
     psscan::raw::quiet_decoder_panics();
     let bars = Bars::new(cli.quiet);
+    signals::install(cli.command.describe(), bars.slot());
     let finished = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
         let outcome = dispatch(&cli, &bars);
         exit_code(&cli, outcome)
@@ -390,9 +393,9 @@ fn exit_code(cli: &Cli, outcome: anyhow::Result<()>) -> i32 {
         Ok(()) => 0,
         Err(err) => {
             let message = error_text(&err);
-            // 130: stopped by Ctrl-C, as shells report SIGINT.
+            // 130 / 143: stopped by SIGINT / SIGTERM, as shells report them.
             let code = match err.downcast_ref::<psscan::Error>() {
-                Some(psscan::Error::Interrupted(_)) => 130,
+                Some(psscan::Error::Interrupted(_)) => signals::interrupted_exit_code(),
                 _ => 1,
             };
             eprintln!("psscan: error: {message}");
@@ -527,6 +530,21 @@ fn error_text(err: &anyhow::Error) -> String {
 /// Set once a command has printed its JSON object, so a failure after it adds no second one.
 static JSON_PRINTED: AtomicBool = AtomicBool::new(false);
 
+impl Command {
+    /// The command, for messages about the run ("stopped `psscan solve` ...").
+    fn describe(&self) -> &'static str {
+        match self {
+            Command::Demo(_) => "`psscan demo`",
+            Command::Synth(_) => "`psscan synth`",
+            Command::Solve(_) => "`psscan solve`",
+            Command::Capture(_) => "`psscan capture`",
+            Command::Lights(_) => "`psscan lights`",
+            Command::Calibrate(_) => "`psscan calibrate`",
+            Command::Bench(_) => "`psscan bench`",
+        }
+    }
+}
+
 fn load_rig(path: &Option<PathBuf>) -> psscan::Result<Rig> {
     match path {
         Some(p) => Rig::load(p),
@@ -591,12 +609,19 @@ fn synth(args: &SynthArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         .as_deref()
         .map(psscan::calibration::bundle::read)
         .transpose()?;
-    let outcome = pipeline::write_synthetic_set_with(
+    let inputs: Vec<&Path> = args
+        .rig
+        .iter()
+        .chain(&args.calibration)
+        .map(|p| p.as_path())
+        .collect();
+    let outcome = pipeline::write_synthetic_set_from(
         &rig,
         &spec,
         &args.out,
         args.force,
         bundle.as_ref(),
+        &inputs,
         bars,
     )?;
     if json {
@@ -617,6 +642,9 @@ fn synth(args: &SynthArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
 fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let mut job = args.solve.job()?;
     job.force = args.force;
+    // Every set of the run is an input of every solve in it (one set's output may not be, or
+    // sit inside, another set), and so is the rig file.
+    job.inputs = args.sets.iter().chain(&args.rig).cloned().collect();
     job.rig = args.rig.as_ref().map(|p| Rig::load(p)).transpose()?;
     job.calibration = match (&args.calibration, args.no_calibration) {
         (Some(dir), _) => CalibrationChoice::Bundle(dir.clone()),
@@ -800,6 +828,9 @@ fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
             script.display()
         );
     }
+    // The output folder is checked before the long run, and written whole at the end: it
+    // is the bench's own (replaced without --force), never a folder of other files.
+    psscan::fsutil::check_replaceable(&args.out, true, &[])?;
     let options = psscan::bench::BenchOptions {
         sizes_mp: args.sizes.clone(),
         repeats: args.repeats,
@@ -808,10 +839,14 @@ fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         scratch: std::env::temp_dir().join(format!("psscan-bench-{}", std::process::id())),
         speed_only: args.speed_only,
     };
+    psscan::fsutil::register_scratch(&options.scratch);
     let result = psscan::bench::run(&options, bars);
     let _ = std::fs::remove_dir_all(&options.scratch);
+    psscan::fsutil::unregister_scratch(&options.scratch);
     let result = result?;
-    psscan::bench::report::write(&result, &args.out)?;
+    let stage = psscan::fsutil::StagedDir::create(&args.out, true, &[])?;
+    psscan::bench::report::write(&result, stage.path())?;
+    stage.commit(true, &[])?;
     if json {
         print_json(&serde_json::json!({
             "result": result,
