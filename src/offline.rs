@@ -153,6 +153,9 @@ fn solve_diligent_into(
     };
     let result = solve::solve_reusing(&input, &job.options, progress, buffers.take())?;
     timings.insert("solve".into(), start.elapsed().as_secs_f64());
+    if job.maps.report_html {
+        maps::html::write_frame_strip(&frames, stage.path())?;
+    }
 
     let start = Instant::now();
     let outputs = maps::write_maps(&result, stage.path(), &job.maps)?;
@@ -165,6 +168,13 @@ fn solve_diligent_into(
         &job.options,
         pipeline::relocate(outputs, out),
     );
+    report.normal_convention = job.maps.normal_convention;
+    report.lights = (set.directions.iter().zip(&set.files))
+        .map(|(d, file)| maps::report::LightRecord {
+            frame: Some(file.clone()),
+            ..maps::report::LightRecord::toward(*d)
+        })
+        .collect();
     report.decode = Some(DecodeInfo {
         encoding: "diligent-png16".into(),
         resolution: Resolution::Full,
@@ -185,10 +195,18 @@ fn solve_diligent_into(
         let everywhere = crate::plane::Mask::new(frames.width, frames.height, true);
         let mask = mask.as_ref().unwrap_or(&everywhere);
         report.normal_truth = Some(eval::compare_normals_over_mask(&result, &truth, mask));
+        let errors: Vec<f64> = (eval::normal_errors_deg(&result, &truth).into_iter())
+            .zip(&mask.data)
+            .filter_map(|(e, &inside)| e.filter(|_| inside))
+            .collect();
+        report.normal_error_histogram = Some(maps::report::Histogram::of_errors(&errors));
     }
     timings.insert("total".into(), total.elapsed().as_secs_f64());
     report.timings_s = timings;
     report.write(&stage.path().join(maps::REPORT_FILE))?;
+    if job.maps.report_html {
+        maps::html::write_report_page(stage.path())?;
+    }
     stage.commit(job.force, maps::REPORT_FILE)?;
     *buffers = Some(result);
     Ok(report)

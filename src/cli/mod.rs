@@ -7,6 +7,7 @@ mod calibrate;
 mod calibrate_steps;
 mod capture;
 mod progress;
+mod report;
 
 use std::path::{Path, PathBuf};
 
@@ -61,6 +62,9 @@ enum Command {
     /// Benchmark every solver variant on standard synthetic scenes: run time against error,
     /// beside the memory-read floor and a NumPy peer.
     Bench(BenchArgs),
+    /// Rebuild a solve folder's report.html (one self-contained page), or render its relight
+    /// on the CPU.
+    Report(report::ReportArgs),
 }
 
 #[derive(Args)]
@@ -240,6 +244,9 @@ struct SolveFlags {
     /// Do not write EXR normal and albedo maps (the confidence EXR is always written).
     #[arg(long)]
     no_exr: bool,
+    /// Do not write report.html (and frames_preview.jpg) beside the maps.
+    #[arg(long)]
+    no_report_html: bool,
     /// RAW frames: full (bilinear demosaic) or half (2x2 CFA binning, 4x fewer pixels).
     #[arg(long, value_enum, default_value_t = ResolutionArg::Full)]
     resolution: ResolutionArg,
@@ -345,6 +352,7 @@ impl SolveFlags {
                 exr: !self.no_exr,
                 // Set from the frames' own colour matrix when they are camera RAW files.
                 display_matrix: None,
+                report_html: !self.no_report_html,
             },
             rig: None,
             force: false,
@@ -376,6 +384,7 @@ pub fn run() -> i32 {
         Command::Lights(args) => capture::lights(args, cli.json),
         Command::Calibrate(args) => calibrate::calibrate(args, cli.json, &bars),
         Command::Bench(args) => bench(args, cli.json, &bars),
+        Command::Report(args) => report::report(args, cli.json),
     };
     match outcome {
         Ok(()) => 0,
