@@ -73,11 +73,17 @@ fn selftest(page: &Path, fragment: &str) -> (Value, String) {
         if let Some(start) = dom.find("SELFTEST-BEGIN{") {
             let rest = &dom[start + "SELFTEST-BEGIN".len()..];
             let end = rest.find("SELFTEST-END").expect("self-test results end");
-            let json = rest[..end].replace("&amp;", "&").replace("&lt;", "<").replace("&gt;", ">");
+            let json = rest[..end]
+                .replace("&amp;", "&")
+                .replace("&lt;", "<")
+                .replace("&gt;", ">");
             return (serde_json::from_str(&json).expect("self-test JSON"), dom);
         }
     }
-    panic!("{}: the page never wrote its self-test results", page.display());
+    panic!(
+        "{}: the page never wrote its self-test results",
+        page.display()
+    );
 }
 
 fn base64_decode(text: &str) -> Vec<u8> {
@@ -103,7 +109,9 @@ fn base64_decode(text: &str) -> Vec<u8> {
 
 fn demo(dir: &Path, extra: &[&str]) -> PathBuf {
     let out = dir.to_str().unwrap();
-    let mut args = vec!["demo", "--out", out, "--width", "160", "--height", "120", "-q"];
+    let mut args = vec![
+        "demo", "--out", out, "--width", "160", "--height", "120", "-q",
+    ];
     args.extend_from_slice(extra);
     psscan(&args);
     dir.join("maps")
@@ -131,7 +139,10 @@ fn demo_page_decodes_draws_and_matches_the_cpu_relight() {
     let tmp = tempfile::tempdir().unwrap();
     let maps = demo(tmp.path(), &["--sheen"]);
     let page = maps.join("report.html");
-    for (brdf, light, roughness) in [("ggx", "0.35,0.2,0.9", "0.3"), ("cloth", "-0.6,0.3,0.5", "0.5")] {
+    for (brdf, light, roughness) in [
+        ("ggx", "0.35,0.2,0.9", "0.3"),
+        ("cloth", "-0.6,0.3,0.5", "0.5"),
+    ] {
         let (result, _) = selftest(
             &page,
             &format!("selftest&light={light}&brdf={brdf}&roughness={roughness}&exposure=1"),
@@ -167,11 +178,40 @@ fn demo_page_decodes_draws_and_matches_the_cpu_relight() {
         ]);
         let cpu = image::open(&cpu_path).unwrap().into_rgb8();
         let (far, mean) = compare(&canvas, &cpu);
-        eprintln!("{brdf}: {:.4} % of values more than 1 DN apart, mean |diff| {mean:.4} DN", 100.0 * far);
+        // The comparison tells lights apart: the CPU render under the light mirrored through
+        // the z axis (where the page moved it next) is far from this canvas.
+        let mirrored: Vec<f32> = light.split(',').map(|v| v.parse().unwrap()).collect();
+        let mirrored = format!("{},{},{}", -mirrored[0], -mirrored[1], mirrored[2]);
+        let other_path = tmp.path().join(format!("cpu-{brdf}-mirrored.png"));
+        psscan(&[
+            "report",
+            maps.to_str().unwrap(),
+            "--render-light",
+            &mirrored,
+            "--render-out",
+            other_path.to_str().unwrap(),
+            "--brdf",
+            brdf,
+            "--roughness",
+            roughness,
+        ]);
+        let other = image::open(&other_path).unwrap().into_rgb8();
+        let (other_far, _) = compare(&canvas, &other);
+        assert!(
+            other_far > 0.1,
+            "{brdf}: the mirrored light's render is as close ({other_far})"
+        );
+        eprintln!(
+            "{brdf}: {:.4} % of values more than 1 DN apart, mean |diff| {mean:.4} DN",
+            100.0 * far
+        );
         // Same 8-bit inputs, same f32 arithmetic: the final conversion to 8 bits may round
         // differently (1 DN); more only where a GPU transcendental's last-bit difference
         // crosses a branch (the horizon or pole guards), a handful of pixels.
-        assert!(far <= 0.001, "{brdf}: {far} of values differ by more than 1 DN");
+        assert!(
+            far <= 0.001,
+            "{brdf}: {far} of values differ by more than 1 DN"
+        );
         assert!(mean <= 0.25, "{brdf}: mean difference {mean} DN");
     }
 }
@@ -189,14 +229,29 @@ fn a_damaged_report_and_missing_maps_give_a_page_that_says_so() {
     std::fs::write(maps.join("report.json"), &text[..text.len() / 2]).unwrap();
     let out = psscan(&["report", maps.to_str().unwrap(), "--json"]);
     let summary: Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert!(summary["report_error"].as_str().unwrap().contains("damaged"), "{summary}");
-    assert!(summary["missing"].to_string().contains("albedo.png"), "{summary}");
+    assert!(
+        summary["report_error"]
+            .as_str()
+            .unwrap()
+            .contains("damaged"),
+        "{summary}"
+    );
+    assert!(
+        summary["missing"].to_string().contains("albedo.png"),
+        "{summary}"
+    );
 
     let (result, dom) = selftest(&maps.join("report.html"), "selftest");
     assert_eq!(result["errors"], serde_json::json!([]), "{result}");
     assert_eq!(result["images_failed"], serde_json::json!([]), "{result}");
-    assert!(dom.contains("report.json: is damaged"), "the page does not say report.json is damaged");
-    assert!(dom.contains("albedo.png: missing"), "the page does not say albedo.png is missing");
+    assert!(
+        dom.contains("report.json: is damaged"),
+        "the page does not say report.json is damaged"
+    );
+    assert!(
+        dom.contains("albedo.png: missing"),
+        "the page does not say albedo.png is missing"
+    );
     // What is left is still shown: the status map from confidence.exr.
     assert!(dom.contains("id=\"img-status\""));
 

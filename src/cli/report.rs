@@ -12,7 +12,13 @@ pub struct ReportArgs {
     solve_dir: PathBuf,
     /// Render the page's relight under this light direction (x,y,z; world frame, +z toward
     /// the camera) into --render-out instead of rebuilding the page.
-    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, requires = "render_out", value_name = "X,Y,Z")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        requires = "render_out",
+        value_name = "X,Y,Z"
+    )]
     render_light: Option<Vec<f32>>,
     /// PNG to write the CPU relight into.
     #[arg(long, requires = "render_light")]
@@ -47,9 +53,14 @@ pub fn report(args: &ReportArgs, json: bool) -> anyhow::Result<()> {
         let (w, h) = html::render_relight_png(&args.solve_dir, &params, out)
             .with_context(|| format!("rendering the relight of {}", args.solve_dir.display()))?;
         if json {
-            crate::cli::print_json(&serde_json::json!({"out": out, "width": w, "height": h, "params": params}));
+            crate::cli::print_json(
+                &serde_json::json!({"out": out, "width": w, "height": h, "params": params}),
+            );
         } else {
-            println!("psscan report: relight {w}x{h} written to {}", out.display());
+            println!(
+                "psscan report: relight {w}x{h} written to {}",
+                out.display()
+            );
         }
         return Ok(());
     }

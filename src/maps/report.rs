@@ -83,7 +83,12 @@ pub struct LightRecord {
 impl LightRecord {
     /// A light toward `towards` (any length).
     pub fn toward(towards: [f64; 3]) -> LightRecord {
-        let len = towards.iter().map(|v| v * v).sum::<f64>().sqrt().max(f64::MIN_POSITIVE);
+        let len = towards
+            .iter()
+            .map(|v| v * v)
+            .sum::<f64>()
+            .sqrt()
+            .max(f64::MIN_POSITIVE);
         LightRecord {
             direction: towards.map(|v| v / len),
             position_m: None,

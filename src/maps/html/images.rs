@@ -111,12 +111,9 @@ fn read_confidence(dir: &Path) -> Result<[Plane; 4]> {
     if !path.exists() {
         return Err(Error::image(path, "missing"));
     }
-    read_exr(
-        &path,
-        &["status", "fit", "predicted_error_deg", "residual"],
-    )?
-    .try_into()
-    .map_err(|_| Error::image(&path, "expected four channels"))
+    read_exr(&path, &["status", "fit", "predicted_error_deg", "residual"])?
+        .try_into()
+        .map_err(|_| Error::image(&path, "expected four channels"))
 }
 
 fn keep<T>(read: Result<T>, missing: &mut Vec<String>) -> Option<T> {
@@ -130,12 +127,15 @@ impl FullMaps {
         let albedo = keep(read_albedo(dir), &mut missing);
         let normal = keep(read_normal(dir, convention), &mut missing);
         let confidence = keep(read_confidence(dir), &mut missing);
-        let sizes: Vec<(usize, usize)> = [albedo.as_ref().map(|p| &p[0]), normal.as_ref().map(|p| &p[0])]
-            .into_iter()
-            .flatten()
-            .chain(confidence.as_ref().map(|c| &c[0]))
-            .map(|p| (p.width, p.height))
-            .collect();
+        let sizes: Vec<(usize, usize)> = [
+            albedo.as_ref().map(|p| &p[0]),
+            normal.as_ref().map(|p| &p[0]),
+        ]
+        .into_iter()
+        .flatten()
+        .chain(confidence.as_ref().map(|c| &c[0]))
+        .map(|p| (p.width, p.height))
+        .collect();
         let (width, height) = sizes.first().copied().unwrap_or((0, 0));
         let mut maps = FullMaps {
             width,
@@ -194,7 +194,13 @@ impl Reduction {
     }
 
     /// Full-resolution pixel indices of display pixel `(x, y)`'s block.
-    fn block(&self, full_w: usize, full_h: usize, x: usize, y: usize) -> impl Iterator<Item = usize> {
+    fn block(
+        &self,
+        full_w: usize,
+        full_h: usize,
+        x: usize,
+        y: usize,
+    ) -> impl Iterator<Item = usize> {
         let f = self.factor;
         let (x0, y0) = (x * f, y * f);
         let (x1, y1) = ((x0 + f).min(full_w), (y0 + f).min(full_h));
@@ -207,7 +213,7 @@ fn byte(v: f32) -> u8 {
 }
 
 /// The relight's textures (also the page's albedo and normal views): block means over solved
-/// pixels, the normal renormalised, unsolved blocks marked `(128, 128, 0)`.
+/// pixels, the normal renormalised, unsolved blocks black (z < 0: no normal).
 pub fn relight_textures(maps: &FullMaps, r: &Reduction) -> Option<RelightTextures> {
     let (albedo, normal) = (maps.albedo.as_ref()?, maps.normal.as_ref()?);
     let (w, h) = (maps.width, maps.height);
@@ -225,7 +231,7 @@ pub fn relight_textures(maps: &FullMaps, r: &Reduction) -> Option<RelightTexture
             }
             let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
             let (ap, np) = if count == 0 || len == 0.0 || !len.is_finite() {
-                ([0u8; 3], [128, 128, 0])
+                ([0u8; 3], [0u8; 3])
             } else {
                 (
                     a.map(|v| byte(linear_to_srgb((v / count as f64) as f32))),
@@ -243,18 +249,16 @@ pub fn relight_textures(maps: &FullMaps, r: &Reduction) -> Option<RelightTexture
 }
 
 /// A class map at display size: each block takes its most common class.
-pub fn class_image(
-    plane: &Plane,
-    r: &Reduction,
-    colour: impl Fn(u8) -> [u8; 3],
-) -> RgbImage {
+pub fn class_image(plane: &Plane, r: &Reduction, colour: impl Fn(u8) -> [u8; 3]) -> RgbImage {
     let (w, h) = (plane.width, plane.height);
     RgbImage::from_fn(r.width as u32, r.height as u32, |x, y| {
         let mut counts = [0usize; 256];
         for i in r.block(w, h, x as usize, y as usize) {
             counts[plane.data[i].clamp(0.0, 255.0) as usize] += 1;
         }
-        let class = (0..256).max_by_key(|&c| (counts[c], std::cmp::Reverse(c))).unwrap_or(0);
+        let class = (0..256)
+            .max_by_key(|&c| (counts[c], std::cmp::Reverse(c)))
+            .unwrap_or(0);
         image::Rgb(colour(class as u8))
     })
 }
@@ -272,7 +276,11 @@ pub fn viridis(t: f32) -> [u8; 3] {
         [170, 220, 50],
         [253, 231, 37],
     ];
-    let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 0.0 } * 8.0;
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        0.0
+    } * 8.0;
     let i = (t.floor() as usize).min(7);
     let f = t - i as f32;
     std::array::from_fn(|c| {
@@ -338,7 +346,9 @@ pub fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<Rgb
         maps.albedo
             .as_ref()
             .map(|a| view(a, &|v| byte(linear_to_srgb(v)))),
-        maps.normal.as_ref().map(|n| view(n, &|v| byte(v * 0.5 + 0.5))),
+        maps.normal
+            .as_ref()
+            .map(|n| view(n, &|v| byte(v * 0.5 + 0.5))),
     )
 }
 
@@ -346,7 +356,12 @@ pub fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<Rgb
 pub fn png_bytes(img: &RgbImage) -> Vec<u8> {
     let mut out = Vec::new();
     image::codecs::png::PngEncoder::new(&mut out)
-        .write_image(img.as_raw(), img.width(), img.height(), image::ExtendedColorType::Rgb8)
+        .write_image(
+            img.as_raw(),
+            img.width(),
+            img.height(),
+            image::ExtendedColorType::Rgb8,
+        )
         .expect("encoding an in-memory RGB image cannot fail");
     out
 }
@@ -355,7 +370,12 @@ pub fn png_bytes(img: &RgbImage) -> Vec<u8> {
 pub fn jpeg_bytes(img: &RgbImage, quality: u8) -> Vec<u8> {
     let mut out = Cursor::new(Vec::new());
     JpegEncoder::new_with_quality(&mut out, quality)
-        .write_image(img.as_raw(), img.width(), img.height(), image::ExtendedColorType::Rgb8)
+        .write_image(
+            img.as_raw(),
+            img.width(),
+            img.height(),
+            image::ExtendedColorType::Rgb8,
+        )
         .expect("encoding an in-memory RGB image cannot fail");
     out.into_inner()
 }
@@ -370,7 +390,11 @@ pub fn base64(bytes: &[u8]) -> String {
     const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
     let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
     for chunk in bytes.chunks(3) {
-        let b = [chunk[0], *chunk.get(1).unwrap_or(&0), *chunk.get(2).unwrap_or(&0)];
+        let b = [
+            chunk[0],
+            *chunk.get(1).unwrap_or(&0),
+            *chunk.get(2).unwrap_or(&0),
+        ];
         let n = (b[0] as u32) << 16 | (b[1] as u32) << 8 | b[2] as u32;
         for k in 0..4 {
             if k <= chunk.len() {

@@ -78,7 +78,10 @@ fn read_report(dir: &Path) -> std::result::Result<Value, String> {
 }
 
 fn normal_convention(report: Option<&Value>) -> NormalConvention {
-    match report.and_then(|r| r.get("normal_convention")).and_then(Value::as_str) {
+    match report
+        .and_then(|r| r.get("normal_convention"))
+        .and_then(Value::as_str)
+    {
         Some("directx") => NormalConvention::DirectX,
         _ => NormalConvention::OpenGl,
     }
@@ -139,7 +142,9 @@ fn loupe_views(maps: &FullMaps) -> (usize, Vec<(String, Vec<u8>)>) {
         let (albedo, normal) = images::full_views(maps, step);
         let views: Vec<(String, Vec<u8>)> = [("albedo", albedo), ("normal", normal)]
             .into_iter()
-            .filter_map(|(name, img)| img.map(|i| (name.to_string(), images::jpeg_bytes(&i, LOUPE_QUALITY))))
+            .filter_map(|(name, img)| {
+                img.map(|i| (name.to_string(), images::jpeg_bytes(&i, LOUPE_QUALITY)))
+            })
             .collect();
         let base64_bytes: usize = views.iter().map(|(_, b)| b.len() * 4 / 3).sum();
         if base64_bytes <= LOUPE_BUDGET_BYTES || step >= 16 {
@@ -163,21 +168,38 @@ struct Parts {
 /// Status classes: name, colour, and the words under the legend.
 pub const STATUS_CLASSES: [(&str, [u8; 3], &str); 6] = [
     ("solved", [46, 160, 67], "a normal and albedo were fitted"),
-    ("outside_mask", [110, 110, 110], "not part of the mask or region"),
+    (
+        "outside_mask",
+        [110, 110, 110],
+        "not part of the mask or region",
+    ),
     ("dark", [40, 60, 200], "too few lights above the noise"),
     ("saturated", [250, 220, 40], "too few lights below clipping"),
     ("non_finite", [230, 30, 140], "NaN or infinite input"),
-    ("degenerate", [255, 120, 0], "lights left too close to coplanar"),
+    (
+        "degenerate",
+        [255, 120, 0],
+        "lights left too close to coplanar",
+    ),
 ];
 
 /// Fit classes (for solved pixels); unsolved pixels are drawn black.
 pub const FIT_CLASSES: [(&str, [u8; 3], &str); 3] = [
     ("least_squares", [90, 140, 200], "passed the model test"),
-    ("robust", [255, 150, 0], "outlier lights dropped or down-weighted"),
+    (
+        "robust",
+        [255, 150, 0],
+        "outlier lights dropped or down-weighted",
+    ),
     ("sheen", [190, 80, 220], "fitted with the sheen lobe"),
 ];
 
-fn class_counts(plane: &crate::plane::Plane, maps: &FullMaps, solved_only: bool, n: usize) -> Vec<usize> {
+fn class_counts(
+    plane: &crate::plane::Plane,
+    maps: &FullMaps,
+    solved_only: bool,
+    n: usize,
+) -> Vec<usize> {
     let mut counts = vec![0usize; n];
     for (i, &v) in plane.data.iter().enumerate() {
         if solved_only && !maps.solved(i) {
@@ -236,7 +258,12 @@ fn class_parts(maps: &FullMaps, r: &Reduction) -> String {
     });
     out += &figure(
         "status",
-        &img_tag("img-status", "image/png", &images::png_bytes(&status), "per-pixel status"),
+        &img_tag(
+            "img-status",
+            "image/png",
+            &images::png_bytes(&status),
+            "per-pixel status",
+        ),
         &legend_classes(&STATUS_CLASSES, &class_counts(&conf[0], maps, false, 6)),
     );
     let fit_img = {
@@ -252,7 +279,12 @@ fn class_parts(maps: &FullMaps, r: &Reduction) -> String {
     };
     out += &figure(
         "fit",
-        &img_tag("img-fit", "image/png", &images::png_bytes(&fit_img), "which fit each pixel got"),
+        &img_tag(
+            "img-fit",
+            "image/png",
+            &images::png_bytes(&fit_img),
+            "which fit each pixel got",
+        ),
         &(legend_classes(&FIT_CLASSES, &class_counts(&conf[1], maps, true, 3))
             + "<p class=\"note\">black: not solved</p>"),
     );
@@ -267,10 +299,19 @@ fn class_parts(maps: &FullMaps, r: &Reduction) -> String {
             "<div class=\"scale\"><span>0</span>{}<span>{} {unit}</span></div>\
              <p class=\"note\">block means over solved pixels; the scale ends at the 99th \
              percentile; dark gray: not solved</p>",
-            img_tag(&format!("{id}-legend"), "image/png", &legend, "colour scale"),
+            img_tag(
+                &format!("{id}-legend"),
+                "image/png",
+                &legend,
+                "colour scale"
+            ),
             fmt_value(max)
         );
-        out += &figure(title, &img_tag(id, "image/png", &images::png_bytes(&img), title), &scale);
+        out += &figure(
+            title,
+            &img_tag(id, "image/png", &images::png_bytes(&img), title),
+            &scale,
+        );
     }
     out
 }
@@ -291,17 +332,30 @@ fn map_parts(maps: &FullMaps, textures: Option<&RelightTextures>) -> String {
         Some(t) => {
             out += &figure(
                 "albedo",
-                &img_tag("img-albedo", "image/png", &images::png_bytes(&t.albedo), "albedo"),
+                &img_tag(
+                    "img-albedo",
+                    "image/png",
+                    &images::png_bytes(&t.albedo),
+                    "albedo",
+                ),
                 "sRGB; hover for the loupe, click to zoom",
             );
             out += &figure(
                 "normal",
-                &img_tag("img-normal", "image/png", &images::png_bytes(&t.normal), "normal"),
+                &img_tag(
+                    "img-normal",
+                    "image/png",
+                    &images::png_bytes(&t.normal),
+                    "normal",
+                ),
                 "OpenGL convention (+Y up), n * 0.5 + 0.5; hover for the loupe, click to zoom",
             );
         }
         None => {
-            for (name, map) in [("albedo", maps.albedo.is_some()), ("normal", maps.normal.is_some())] {
+            for (name, map) in [
+                ("albedo", maps.albedo.is_some()),
+                ("normal", maps.normal.is_some()),
+            ] {
                 if !map {
                     out += &missing_figure(name, &format!("{name} map missing or unreadable"));
                 }
@@ -312,10 +366,8 @@ fn map_parts(maps: &FullMaps, textures: Option<&RelightTextures>) -> String {
             }
         }
     }
-    out += &missing_figure(
-        "height and roughness",
-        "not derived by this solve (psscan writes albedo, normal and confidence maps)",
-    );
+    out += "<figure class=\"map\"><figcaption>height and roughness</figcaption><p class=\"note\">\
+            not derived by this solve: psscan writes albedo, normal and confidence maps</p></figure>";
     out
 }
 
@@ -328,7 +380,7 @@ fn loupe_parts(maps: &FullMaps) -> (usize, String) {
         .iter()
         .map(|(name, bytes)| {
             format!(
-                "<img class=\"loupe-src\" id=\"loupe-{name}\" alt=\"{name} at full resolution\" data-src=\"{}\">",
+                "<img class=\"loupe-src\" id=\"loupe-{name}\" alt=\"{name} at full resolution\" src=\"{}\">",
                 images::data_uri("image/jpeg", bytes)
             )
         })
@@ -345,12 +397,23 @@ fn frames_part(dir: &Path, report: Option<&Value>) -> (String, Value) {
     match std::fs::read(&path) {
         Ok(bytes) if count > 0 => match image::load_from_memory(&bytes) {
             Ok(img) => (
-                img_tag("img-frames", "image/jpeg", &bytes, "the frames, one per light"),
+                img_tag(
+                    "img-frames",
+                    "image/jpeg",
+                    &bytes,
+                    "the frames, one per light",
+                ),
                 json!({"count": count, "tile_w": img.width() as usize / count, "tile_h": img.height()}),
             ),
-            Err(e) => (String::new(), json!({"why": format!("{}: unreadable ({e})", path.display())})),
+            Err(e) => (
+                String::new(),
+                json!({"why": format!("{}: unreadable ({e})", path.display())}),
+            ),
         },
-        Ok(_) => (String::new(), json!({"why": "frames not available: report.json lists no lights"})),
+        Ok(_) => (
+            String::new(),
+            json!({"why": "frames not available: report.json lists no lights"}),
+        ),
         Err(_) => (
             String::new(),
             json!({"why": format!("frames not available: {} is not in the solve folder", FRAME_STRIP_FILE)}),
@@ -366,7 +429,9 @@ fn build_parts(dir: &Path, report: std::result::Result<&Value, &str>) -> (Parts,
     let (frames, frames_data) = frames_part(dir, report.ok());
     let relight = match &textures {
         Some(_) => String::new(),
-        None => "<p class=\"absent\">no relight: it needs both the albedo and normal maps</p>".into(),
+        None => {
+            "<p class=\"absent\">no relight: it needs both the albedo and normal maps</p>".into()
+        }
     };
     let warnings = warnings::collect(report, &maps);
     let data = json!({
@@ -405,17 +470,31 @@ fn build_parts(dir: &Path, report: std::result::Result<&Value, &str>) -> (Parts,
 pub fn build_page(dir: &Path) -> (String, PageSummary) {
     let report = read_report(dir);
     let (parts, summary) = build_parts(dir, report.as_ref().map_err(String::as_str));
+    // The page is built in the solve's staging folder, whose name is temporary: name it after
+    // the set it solved.
+    let set_name = report
+        .as_ref()
+        .ok()
+        .and_then(|r| r.get("capture")?.as_str().map(PathBuf::from))
+        .and_then(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()));
     let title = format!(
-        "psscan report: {}",
-        dir.file_name().map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into_owned())
+        "psscan scan report: {}",
+        set_name.unwrap_or_else(|| dir.display().to_string())
     );
     let subtitle = match &report {
         Ok(r) => format!(
-            "{} x {} pixels, rig {}, psscan {}",
+            "{} x {} pixels, set {}, rig {}, psscan {}",
             summary.width,
             summary.height,
-            r.get("rig").and_then(Value::as_str).unwrap_or("(not recorded)"),
-            r.get("psscan_version").and_then(Value::as_str).unwrap_or("?")
+            r.get("capture")
+                .and_then(Value::as_str)
+                .unwrap_or("(not recorded)"),
+            r.get("rig")
+                .and_then(Value::as_str)
+                .unwrap_or("(not recorded)"),
+            r.get("psscan_version")
+                .and_then(Value::as_str)
+                .unwrap_or("?")
         ),
         Err(e) => format!("report.json unusable: {e}"),
     };
@@ -443,13 +522,17 @@ pub fn build_page(dir: &Path) -> (String, PageSummary) {
 
 /// Replaces each `{{KEY}}` of `template` in one pass (inserted text is not scanned again).
 fn fill(template: &str, values: &[(&str, &str)]) -> String {
-    let mut out = String::with_capacity(template.len() + values.iter().map(|(_, v)| v.len()).sum::<usize>());
+    let mut out =
+        String::with_capacity(template.len() + values.iter().map(|(_, v)| v.len()).sum::<usize>());
     let mut rest = template;
     while let Some(start) = rest.find("{{") {
         out.push_str(&rest[..start]);
         let after = &rest[start + 2..];
         match after.find("}}").and_then(|end| {
-            values.iter().find(|(k, _)| *k == &after[..end]).map(|(_, v)| (end, v))
+            values
+                .iter()
+                .find(|(k, _)| *k == &after[..end])
+                .map(|(_, v)| (end, v))
         }) {
             Some((end, value)) => {
                 out.push_str(value);

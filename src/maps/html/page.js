@@ -8,9 +8,7 @@
 
   // ---- loupe and zoom -------------------------------------------------------------------
   function loupeSource(name) {
-    var img = $("loupe-" + name);
-    if (img && !img.getAttribute("src")) img.src = img.getAttribute("data-src");
-    return img;
+    return $("loupe-" + name);
   }
 
   function setupLoupe(name) {
@@ -22,10 +20,7 @@
     view.addEventListener("mouseleave", function () { loupe.hidden = true; });
     view.addEventListener("mousemove", function (e) {
       var src = loupeSource(name);
-      if (!src || !src.complete || !src.naturalWidth) {
-        if (src) src.onload = function () { loupe.hidden = true; };
-        return;
-      }
+      if (!src || !src.complete || !src.naturalWidth) return;
       var rect = view.getBoundingClientRect();
       var fx = (e.clientX - rect.left) / rect.width * src.naturalWidth;
       var fy = (e.clientY - rect.top) / rect.height * src.naturalHeight;
@@ -311,15 +306,32 @@
     return { png: c.toDataURL("image/png"), lit: lit };
   }
 
+  // Whether an image decodes: drawing it forces the decode; a broken one has no size or
+  // throws.
+  function decodes(img) {
+    if (!img.complete || !img.naturalWidth) return false;
+    try {
+      var c = document.createElement("canvas");
+      c.width = c.height = 1;
+      var ctx = c.getContext("2d");
+      ctx.drawImage(img, img.naturalWidth - 1, img.naturalHeight - 1, 1, 1, 0, 0, 1, 1);
+      ctx.getImageData(0, 0, 1, 1);
+      return true;
+    } catch (e) {
+      return false;
+    }
+  }
+
+  // Runs synchronously inside the load handler, so Chromium's --dump-dom, which prints the DOM
+  // once loading is done, always sees the results.
   function selftest(setupError, loadMs) {
     var p = params(), out = { load_ms: loadMs, webgl: !!gl, setup_error: setupError };
     var imgs = Array.prototype.slice.call(document.images);
-    imgs.forEach(function (img) { if (!img.getAttribute("src") && img.getAttribute("data-src")) img.src = img.getAttribute("data-src"); });
-    Promise.all(imgs.map(function (img) {
-      return img.decode().then(function () { return img.naturalWidth > 0 ? null : img.id; }, function () { return img.id || img.alt; });
-    })).then(function (failed) {
-      out.images = imgs.length;
-      out.images_failed = failed.filter(function (x) { return x; });
+    var t0 = performance.now();
+    out.images = imgs.length;
+    out.images_failed = imgs.filter(function (img) { return !decodes(img); }).map(function (img) { return img.id || img.alt; });
+    out.decode_ms = performance.now() - t0;
+    (function () {
       if (gl) {
         if (p.light) state.light = p.light.split(",").map(Number);
         if (p.brdf) state.brdf = p.brdf;
@@ -339,7 +351,7 @@
       var pre = $("selftest");
       pre.textContent = "SELFTEST-BEGIN" + JSON.stringify(out) + "SELFTEST-END";
       pre.hidden = false;
-    });
+    })();
   }
 
   window.addEventListener("load", function () {

@@ -115,7 +115,12 @@ fn from_report(r: &Value, out: &mut Vec<Warning>) {
         ));
     }
     if let Some(cited) = r.get("calibration_cited_by_set").filter(|v| !v.is_null()) {
-        let id = |v: &Value| v.get("id").and_then(Value::as_str).unwrap_or("?").to_string();
+        let id = |v: &Value| {
+            v.get("id")
+                .and_then(Value::as_str)
+                .unwrap_or("?")
+                .to_string()
+        };
         let used = r.get("calibration").filter(|v| !v.is_null());
         out.push(warning(
             "warn",
@@ -180,7 +185,8 @@ pub fn collect(report: std::result::Result<&Value, &str>, maps: &FullMaps) -> Ve
 /// The warnings as an HTML list (a line saying so when there are none).
 pub fn render(warnings: &[Warning]) -> String {
     if warnings.is_empty() {
-        return "<ul class=\"warnings\"><li class=\"ok\">no warnings: every check passed</li></ul>".into();
+        return "<ul class=\"warnings\"><li class=\"ok\">no warnings: every check passed</li></ul>"
+            .into();
     }
     let items: String = warnings
         .iter()
