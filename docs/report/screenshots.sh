@@ -16,7 +16,7 @@ mkdir -p "$WORK"
 
 shoot() { # page.html out.png height
   "$BROWSER" --headless --no-sandbox --use-angle=swiftshader --enable-unsafe-swiftshader \
-    --hide-scrollbars --user-data-dir="$WORK/profile" --virtual-time-budget=20000 \
+    --hide-scrollbars --force-device-scale-factor=0.75 --user-data-dir="$WORK/profile" --virtual-time-budget=20000 \
     --window-size=1400,"$3" --screenshot="$2" "file://$(realpath "$1")" 2>/dev/null
   echo "wrote $2"
 }
