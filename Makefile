@@ -4,7 +4,7 @@
 
 CARGO ?= cargo
 
-.PHONY: demo test deps test-rust test-firmware lint
+.PHONY: demo test deps test-rust test-firmware lint report-screenshots
 
 demo:
 	$(CARGO) run --release -- demo
@@ -30,3 +30,8 @@ test-rust:
 lint:
 	$(CARGO) fmt --check
 	$(CARGO) clippy --release --all-targets -- -D warnings
+
+# Screenshots of report.html for the demo and a DiLiGenT-layout set, into docs/report/.
+report-screenshots:
+	$(CARGO) build --release
+	docs/report/screenshots.sh target/release/psscan

@@ -154,6 +154,9 @@ fn solve_diligent_into(
     };
     let result = solve::solve_reusing(&input, &job.options, progress, buffers.take())?;
     timings.insert("solve".into(), start.elapsed().as_secs_f64());
+    if job.maps.report_html {
+        maps::html::write_frame_strip(&frames, stage.path())?;
+    }
 
     let start = Instant::now();
     let outputs = maps::write_maps(&result, stage.path(), &job.maps)?;
@@ -170,6 +173,13 @@ fn solve_diligent_into(
     // The benchmark's sensor noise is not known (only its rounding is modelled above), so a
     // predicted error would be a figure for a noise-free camera: reported as unknown.
     report.predicted_normal_error_deg = crate::maps::report::Mean::UNKNOWN;
+    report.normal_convention = job.maps.normal_convention;
+    report.lights = (set.directions.iter().zip(&set.files))
+        .map(|(d, file)| maps::report::LightRecord {
+            frame: Some(file.clone()),
+            ..maps::report::LightRecord::toward(*d)
+        })
+        .collect();
     report.decode = Some(DecodeInfo {
         encoding: "diligent-png16".into(),
         resolution: Resolution::Full,
@@ -190,10 +200,18 @@ fn solve_diligent_into(
         let everywhere = crate::plane::Mask::new(frames.width, frames.height, true);
         let mask = mask.as_ref().unwrap_or(&everywhere);
         report.normal_truth = Some(eval::compare_normals_over_mask(&result, &truth, mask));
+        let errors: Vec<f64> = (eval::normal_errors_deg(&result, &truth).into_iter())
+            .zip(&mask.data)
+            .filter_map(|(e, &inside)| e.filter(|_| inside))
+            .collect();
+        report.normal_error_histogram = Some(maps::report::Histogram::of_errors(&errors));
     }
     timings.insert("total".into(), total.elapsed().as_secs_f64());
     report.timings_s = timings;
     report.write(&stage.path().join(maps::REPORT_FILE))?;
+    if job.maps.report_html {
+        maps::html::write_report_page(stage.path())?;
+    }
     stage.commit(job.force, &inputs)?;
     *buffers = Some(result);
     Ok(report)

@@ -693,6 +693,9 @@ pub fn solve_capture_set_reusing(
     };
     let result = solve::solve_reusing(&input, &job.options, progress, buffers.take())?;
     timings.insert("solve".into(), start.elapsed().as_secs_f64());
+    if job.maps.report_html {
+        maps::html::write_frame_strip(&frames, stage.path())?;
+    }
     drop(frames);
 
     let start = Instant::now();
@@ -705,7 +708,10 @@ pub fn solve_capture_set_reusing(
 
     let outputs = relocate(outputs, out);
     let mut report = Report::new(dir, &set.rig.name, &result, &job.options, outputs);
+    report.normal_convention = map_options.normal_convention;
     report.maps = map_options;
+    report.lights = light_records(&set);
+    report.camera = serde_json::to_value(&set.manifest.camera).ok();
     report.calibration = calibration.as_ref().map(|b| b.citation());
     report.calibration_cited_by_set = set.manifest.calibration.clone().filter(|c| {
         report
@@ -716,6 +722,11 @@ pub fn solve_capture_set_reusing(
     if let Some(truth) = truth_for(&set, &decode)? {
         let (normal, albedo) = region_truth(truth, &job.region)?;
         report.set_truth(eval::compare(&result, &normal, &albedo));
+        let errors: Vec<f64> = eval::normal_errors_deg(&result, &normal)
+            .into_iter()
+            .flatten()
+            .collect();
+        report.normal_error_histogram = Some(maps::report::Histogram::of_errors(&errors));
     }
     if !job.region.is_full() {
         report.set_region(region_info);
@@ -724,9 +735,30 @@ pub fn solve_capture_set_reusing(
     timings.insert("total".into(), total.elapsed().as_secs_f64());
     report.timings_s = timings;
     report.write(&stage.path().join(maps::REPORT_FILE))?;
+    if job.maps.report_html {
+        maps::html::write_report_page(stage.path())?;
+    }
     stage.commit(job.force, &inputs)?;
     *buffers = Some(result);
     Ok(report)
+}
+
+/// The set's lights in frame order, with their frames' files and hashes (for the report page).
+fn light_records(set: &CaptureSet) -> Vec<maps::report::LightRecord> {
+    let frame = |k: usize| {
+        set.manifest
+            .frames
+            .iter()
+            .find(|f| f.kind == FrameKind::Light && f.light == Some(k))
+    };
+    (set.rig.leds.iter().enumerate())
+        .map(|(k, led)| maps::report::LightRecord {
+            position_m: Some(led.position_m),
+            frame: frame(k).map(|f| f.file.clone()),
+            sha256: frame(k).map(|f| f.sha256.clone()),
+            ..maps::report::LightRecord::toward(led.position_m)
+        })
+        .collect()
 }
 
 /// The written maps' paths under their final folder name.

@@ -7,6 +7,7 @@ mod calibrate;
 mod calibrate_steps;
 mod capture;
 mod progress;
+mod report;
 mod signals;
 mod values;
 
@@ -64,6 +65,9 @@ enum Command {
     /// Benchmark every solver variant on standard synthetic scenes: run time against error,
     /// beside the memory-read floor and a NumPy peer.
     Bench(BenchArgs),
+    /// Rebuild a solve folder's report.html (one self-contained page), or render its relight
+    /// on the CPU.
+    Report(report::ReportArgs),
 }
 
 #[derive(Args)]
@@ -246,6 +250,9 @@ struct SolveFlags {
     /// Do not write EXR normal and albedo maps (the confidence EXR is always written).
     #[arg(long)]
     no_exr: bool,
+    /// Do not write report.html (and frames_preview.jpg) beside the maps.
+    #[arg(long)]
+    no_report_html: bool,
     /// RAW frames: full (bilinear demosaic) or half (2x2 CFA binning, 4x fewer pixels).
     #[arg(long, value_enum, default_value_t = ResolutionArg::Full)]
     resolution: ResolutionArg,
@@ -346,6 +353,7 @@ impl SolveFlags {
                 exr: !self.no_exr,
                 // Set from the frames' own colour matrix when they are camera RAW files.
                 display_matrix: None,
+                report_html: !self.no_report_html,
             },
             rig: None,
             force: false,
@@ -419,6 +427,7 @@ fn dispatch(cli: &Cli, bars: &Bars) -> anyhow::Result<()> {
         Command::Lights(args) => capture::lights(args, cli.json),
         Command::Calibrate(args) => calibrate::calibrate(args, cli.json, bars),
         Command::Bench(args) => bench(args, cli.json, bars),
+        Command::Report(args) => report::report(args, cli.json),
     }
 }
 
@@ -541,6 +550,7 @@ impl Command {
             Command::Lights(_) => "`psscan lights`",
             Command::Calibrate(_) => "`psscan calibrate`",
             Command::Bench(_) => "`psscan bench`",
+            Command::Report(_) => "`psscan report`",
         }
     }
 }

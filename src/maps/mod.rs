@@ -4,6 +4,7 @@
 //! squares, 1 robust, 2 sheen) and `report.json`.
 
 pub mod encode;
+pub mod html;
 pub mod report;
 pub mod write;
 
@@ -28,6 +29,8 @@ pub struct MapOptions {
     /// Camera RGB to linear sRGB for the display output (`albedo.png`); the solve's data
     /// outputs (EXR) stay in the camera's white-balanced RGB. `None`: the channels are sRGB's.
     pub display_matrix: Option<[[f64; 3]; 3]>,
+    /// Write `report.html` (and the frame previews it shows) beside the maps.
+    pub report_html: bool,
 }
 
 impl Default for MapOptions {
@@ -37,6 +40,7 @@ impl Default for MapOptions {
             png: true,
             exr: true,
             display_matrix: None,
+            report_html: true,
         }
     }
 }

@@ -72,6 +72,90 @@ pub struct Report {
     /// `--rig`, or `--allow-calibration-mismatch` with another bundle).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub calibration_cited_by_set: Option<crate::calibration::bundle::CalibrationRef>,
+    /// Orientation of the normal maps written.
+    pub normal_convention: super::NormalConvention,
+    /// The lights in frame order, for the report page's view of the rig.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub lights: Vec<LightRecord>,
+    /// The capture set's camera settings, as its manifest records them.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub camera: Option<serde_json::Value>,
+    /// Per-pixel normal errors against ground truth, binned (synthetic and benchmark sets).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub normal_error_histogram: Option<Histogram>,
+}
+
+/// One light of the solve.
+#[derive(Clone, Debug, Serialize)]
+pub struct LightRecord {
+    /// Unit direction toward the light from the table centre (world frame).
+    pub direction: [f64; 3],
+    /// LED position (capture sets; DiLiGenT lights are distant).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub position_m: Option<[f64; 3]>,
+    /// The light's frame file, relative to the capture set.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub frame: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sha256: Option<String>,
+}
+
+impl LightRecord {
+    /// A light toward `towards` (any length).
+    pub fn toward(towards: [f64; 3]) -> LightRecord {
+        let len = towards
+            .iter()
+            .map(|v| v * v)
+            .sum::<f64>()
+            .sqrt()
+            .max(f64::MIN_POSITIVE);
+        LightRecord {
+            direction: towards.map(|v| v / len),
+            position_m: None,
+            frame: None,
+            sha256: None,
+        }
+    }
+}
+
+/// Counts of values in bins of equal width from 0.
+#[derive(Clone, Debug, Serialize)]
+pub struct Histogram {
+    pub bin_deg: f64,
+    pub counts: Vec<usize>,
+    /// Values above the last bin.
+    pub above: usize,
+    pub pixels: usize,
+}
+
+impl Histogram {
+    /// 40 bins up to the 99th percentile of the values (rounded up to a readable width).
+    pub fn of_errors(values: &[f64]) -> Histogram {
+        const BINS: usize = 40;
+        let mut sorted: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+        sorted.sort_by(f64::total_cmp);
+        let p99 = sorted
+            .get(((sorted.len().max(1) - 1) as f64 * 0.99) as usize)
+            .copied()
+            .unwrap_or(1.0)
+            .max(1e-6);
+        let step = 10f64.powf((p99 / BINS as f64).log10().floor());
+        let bin_deg = ((p99 / BINS as f64) / step).ceil() * step;
+        let mut counts = vec![0; BINS];
+        let mut above = 0;
+        for v in &sorted {
+            match counts.get_mut((v / bin_deg) as usize) {
+                Some(c) => *c += 1,
+                None => above += 1,
+            }
+        }
+        Histogram {
+            bin_deg,
+            counts,
+            above,
+            pixels: sorted.len(),
+        }
+    }
 }
 
 /// A mean; NaN (JSON `null`, "n/a" in the CLI) when it could not be computed.
@@ -200,6 +284,10 @@ impl Report {
             normal_truth: None,
             calibration: None,
             calibration_cited_by_set: None,
+            normal_convention: Default::default(),
+            lights: Vec::new(),
+            camera: None,
+            normal_error_histogram: None,
         }
     }
 

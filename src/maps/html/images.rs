@@ -1,0 +1,450 @@
+//! The page's images: the maps on disk read back, reduced to display size, colour-mapped, and
+//! encoded (PNG where the page computes with the values, JPEG for the loupe's full-resolution
+//! views) as `data:` URIs.
+
+use std::io::Cursor;
+use std::path::Path;
+
+use image::codecs::jpeg::JpegEncoder;
+use image::{ImageEncoder, RgbImage};
+
+use super::relight::{linear_to_srgb, RelightTextures};
+use crate::error::{Error, Result};
+use crate::maps::encode::NormalConvention;
+use crate::maps::write::read_exr;
+use crate::plane::Plane;
+
+/// Longest side of the display-size maps (and the relight canvas).
+pub const DISPLAY_MAX_SIDE: usize = 1024;
+
+/// A full-resolution map read back from the solve folder.
+pub struct FullMaps {
+    pub width: usize,
+    pub height: usize,
+    /// Linear RGB albedo (display primaries, as `albedo.png` holds them).
+    pub albedo: Option<[Plane; 3]>,
+    /// World-frame normals, OpenGL convention; `None` where the map is missing.
+    pub normal: Option<[Plane; 3]>,
+    /// `status`, `fit`, `predicted_error_deg`, `residual` of `confidence.exr`.
+    pub confidence: Option<[Plane; 4]>,
+    /// What could not be read, in words (file and cause).
+    pub missing: Vec<String>,
+}
+
+fn srgb_to_linear(c: f32) -> f32 {
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+fn read_png16(path: &Path) -> Result<(usize, usize, [Vec<f32>; 3])> {
+    let img = image::open(path)
+        .map_err(|e| Error::image(path, e))?
+        .into_rgb16();
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let mut out: [Vec<f32>; 3] = std::array::from_fn(|_| Vec::with_capacity(w * h));
+    for px in img.pixels() {
+        for c in 0..3 {
+            out[c].push(px.0[c] as f32 / 65535.0);
+        }
+    }
+    Ok((w, h, out))
+}
+
+fn planes(w: usize, h: usize, data: [Vec<f32>; 3]) -> Result<[Plane; 3]> {
+    let [a, b, c] = data;
+    Ok([
+        Plane::from_vec(w, h, a)?,
+        Plane::from_vec(w, h, b)?,
+        Plane::from_vec(w, h, c)?,
+    ])
+}
+
+fn read_albedo(dir: &Path) -> Result<[Plane; 3]> {
+    let png = dir.join("albedo.png");
+    if png.exists() {
+        let (w, h, mut data) = read_png16(&png)?;
+        for channel in &mut data {
+            channel.iter_mut().for_each(|v| *v = srgb_to_linear(*v));
+        }
+        return planes(w, h, data);
+    }
+    let exr = dir.join("albedo.exr");
+    if exr.exists() {
+        let [r, g, b]: [Plane; 3] = read_exr(&exr, &["R", "G", "B"])?
+            .try_into()
+            .map_err(|_| Error::image(&exr, "expected three channels"))?;
+        return Ok([r, g, b]);
+    }
+    Err(Error::image(
+        dir.join("albedo.png"),
+        "missing (and no albedo.exr)",
+    ))
+}
+
+fn read_normal(dir: &Path, convention: NormalConvention) -> Result<[Plane; 3]> {
+    let png = dir.join("normal.png");
+    let exr = dir.join("normal.exr");
+    let [x, mut y, z] = if png.exists() {
+        let (w, h, mut data) = read_png16(&png)?;
+        for channel in &mut data {
+            channel.iter_mut().for_each(|v| *v = *v * 2.0 - 1.0);
+        }
+        planes(w, h, data)?
+    } else if exr.exists() {
+        read_exr(&exr, &["R", "G", "B"])?
+            .try_into()
+            .map_err(|_| Error::image(&exr, "expected three channels"))?
+    } else {
+        return Err(Error::image(png, "missing (and no normal.exr)"));
+    };
+    if convention == NormalConvention::DirectX {
+        y.data.iter_mut().for_each(|v| *v = -*v);
+    }
+    Ok([x, y, z])
+}
+
+fn read_confidence(dir: &Path) -> Result<[Plane; 4]> {
+    let path = dir.join("confidence.exr");
+    if !path.exists() {
+        return Err(Error::image(path, "missing"));
+    }
+    read_exr(&path, &["status", "fit", "predicted_error_deg", "residual"])?
+        .try_into()
+        .map_err(|_| Error::image(&path, "expected four channels"))
+}
+
+fn keep<T>(read: Result<T>, missing: &mut Vec<String>) -> Option<T> {
+    read.map_err(|e| missing.push(e.to_string())).ok()
+}
+
+impl FullMaps {
+    /// Reads what the solve folder holds; a missing or unreadable map is noted, not fatal.
+    pub fn read(dir: &Path, convention: NormalConvention) -> FullMaps {
+        let mut missing = Vec::new();
+        let albedo = keep(read_albedo(dir), &mut missing);
+        let normal = keep(read_normal(dir, convention), &mut missing);
+        let confidence = keep(read_confidence(dir), &mut missing);
+        let sizes: Vec<(usize, usize)> = [
+            albedo.as_ref().map(|p| &p[0]),
+            normal.as_ref().map(|p| &p[0]),
+        ]
+        .into_iter()
+        .flatten()
+        .chain(confidence.as_ref().map(|c| &c[0]))
+        .map(|p| (p.width, p.height))
+        .collect();
+        let (width, height) = sizes.first().copied().unwrap_or((0, 0));
+        let mut maps = FullMaps {
+            width,
+            height,
+            albedo,
+            normal,
+            confidence,
+            missing,
+        };
+        if sizes.iter().any(|&s| s != (width, height)) {
+            maps.missing.push(format!(
+                "{}: the maps have different sizes ({sizes:?}); only the first size is shown",
+                dir.display()
+            ));
+            maps.drop_other_sizes();
+        }
+        maps
+    }
+
+    fn drop_other_sizes(&mut self) {
+        let size = (self.width, self.height);
+        let same = |p: &Plane| (p.width, p.height) == size;
+        if self.normal.as_ref().is_some_and(|n| !same(&n[0])) {
+            self.normal = None;
+        }
+        if self.confidence.as_ref().is_some_and(|c| !same(&c[0])) {
+            self.confidence = None;
+        }
+    }
+
+    /// Whether pixel `i` holds a solved normal (status 0; every pixel when the confidence
+    /// map is missing).
+    pub fn solved(&self, i: usize) -> bool {
+        self.confidence
+            .as_ref()
+            .map_or(true, |c| c[0].data[i] == 0.0)
+    }
+}
+
+/// Integer reduction from full to display size.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+pub struct Reduction {
+    pub factor: usize,
+    pub width: usize,
+    pub height: usize,
+}
+
+impl Reduction {
+    pub fn for_size(width: usize, height: usize) -> Reduction {
+        let factor = width.max(height).div_ceil(DISPLAY_MAX_SIDE).max(1);
+        Reduction {
+            factor,
+            width: width.div_ceil(factor),
+            height: height.div_ceil(factor),
+        }
+    }
+
+    /// Full-resolution pixel indices of display pixel `(x, y)`'s block.
+    fn block(
+        &self,
+        full_w: usize,
+        full_h: usize,
+        x: usize,
+        y: usize,
+    ) -> impl Iterator<Item = usize> {
+        let f = self.factor;
+        let (x0, y0) = (x * f, y * f);
+        let (x1, y1) = ((x0 + f).min(full_w), (y0 + f).min(full_h));
+        (y0..y1).flat_map(move |yy| (x0..x1).map(move |xx| yy * full_w + xx))
+    }
+}
+
+fn byte(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
+/// The relight's textures (also the page's albedo and normal views): block means over solved
+/// pixels, the normal renormalised, unsolved blocks black (z < 0: no normal).
+pub fn relight_textures(maps: &FullMaps, r: &Reduction) -> Option<RelightTextures> {
+    let (albedo, normal) = (maps.albedo.as_ref()?, maps.normal.as_ref()?);
+    let (w, h) = (maps.width, maps.height);
+    let mut a_img = RgbImage::new(r.width as u32, r.height as u32);
+    let mut n_img = RgbImage::new(r.width as u32, r.height as u32);
+    for y in 0..r.height {
+        for x in 0..r.width {
+            let (mut a, mut n, mut count) = ([0f64; 3], [0f64; 3], 0usize);
+            for i in r.block(w, h, x, y).filter(|&i| maps.solved(i)) {
+                for c in 0..3 {
+                    a[c] += albedo[c].data[i] as f64;
+                    n[c] += normal[c].data[i] as f64;
+                }
+                count += 1;
+            }
+            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            let (ap, np) = if count == 0 || len == 0.0 || !len.is_finite() {
+                ([0u8; 3], [0u8; 3])
+            } else {
+                (
+                    a.map(|v| byte(linear_to_srgb((v / count as f64) as f32))),
+                    n.map(|v| byte(((v / len) * 0.5 + 0.5) as f32)),
+                )
+            };
+            a_img.put_pixel(x as u32, y as u32, image::Rgb(ap));
+            n_img.put_pixel(x as u32, y as u32, image::Rgb(np));
+        }
+    }
+    Some(RelightTextures {
+        albedo: a_img,
+        normal: n_img,
+    })
+}
+
+/// A class map at display size: each block takes its most common class.
+pub fn class_image(plane: &Plane, r: &Reduction, colour: impl Fn(u8) -> [u8; 3]) -> RgbImage {
+    let (w, h) = (plane.width, plane.height);
+    RgbImage::from_fn(r.width as u32, r.height as u32, |x, y| {
+        let mut counts = [0usize; 256];
+        for i in r.block(w, h, x as usize, y as usize) {
+            counts[plane.data[i].clamp(0.0, 255.0) as usize] += 1;
+        }
+        let class = (0..256)
+            .max_by_key(|&c| (counts[c], std::cmp::Reverse(c)))
+            .unwrap_or(0);
+        image::Rgb(colour(class as u8))
+    })
+}
+
+/// Viridis, sampled at nine points (matplotlib's table), linearly interpolated.
+pub fn viridis(t: f32) -> [u8; 3] {
+    const STOPS: [[u8; 3]; 9] = [
+        [68, 1, 84],
+        [71, 44, 122],
+        [59, 81, 139],
+        [44, 113, 142],
+        [33, 144, 141],
+        [39, 173, 129],
+        [92, 200, 99],
+        [170, 220, 50],
+        [253, 231, 37],
+    ];
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        0.0
+    } * 8.0;
+    let i = (t.floor() as usize).min(7);
+    let f = t - i as f32;
+    std::array::from_fn(|c| {
+        (STOPS[i][c] as f32 * (1.0 - f) + STOPS[i + 1][c] as f32 * f).round() as u8
+    })
+}
+
+/// Colour of pixels a continuous map has no value for.
+pub const NO_VALUE: [u8; 3] = [30, 30, 30];
+
+/// The value range a colour scale spans: 0 to the 99th percentile over the solved pixels.
+pub fn scale_max(plane: &Plane, maps: &FullMaps) -> f32 {
+    let mut values: Vec<f32> = (0..plane.data.len())
+        .filter(|&i| maps.solved(i) && plane.data[i].is_finite())
+        .map(|i| plane.data[i])
+        .collect();
+    if values.is_empty() {
+        return 1.0;
+    }
+    let k = ((values.len() - 1) as f64 * 0.99) as usize;
+    let (_, v, _) = values.select_nth_unstable_by(k, f32::total_cmp);
+    if *v > 0.0 {
+        *v
+    } else {
+        1.0
+    }
+}
+
+/// A continuous map at display size: block means over solved pixels, viridis over `[0, max]`.
+pub fn scalar_image(plane: &Plane, maps: &FullMaps, r: &Reduction, max: f32) -> RgbImage {
+    let (w, h) = (plane.width, plane.height);
+    RgbImage::from_fn(r.width as u32, r.height as u32, |x, y| {
+        let (mut sum, mut count) = (0f64, 0usize);
+        for i in r.block(w, h, x as usize, y as usize) {
+            if maps.solved(i) && plane.data[i].is_finite() {
+                sum += plane.data[i] as f64;
+                count += 1;
+            }
+        }
+        image::Rgb(if count == 0 {
+            NO_VALUE
+        } else {
+            viridis((sum / count as f64) as f32 / max)
+        })
+    })
+}
+
+/// The legend strip of [`viridis`], 256 x 12.
+pub fn viridis_legend() -> RgbImage {
+    RgbImage::from_fn(256, 12, |x, _| image::Rgb(viridis(x as f32 / 255.0)))
+}
+
+/// Full-resolution 8-bit views for the loupe: sRGB albedo and the OpenGL normal encoding.
+pub fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<RgbImage>) {
+    let (w, h) = (maps.width.div_ceil(step), maps.height.div_ceil(step));
+    let view = |planes: &[Plane; 3], f: &dyn Fn(f32) -> u8| {
+        RgbImage::from_fn(w as u32, h as u32, |x, y| {
+            let i = y as usize * step * maps.width + x as usize * step;
+            image::Rgb(std::array::from_fn(|c| f(planes[c].data[i])))
+        })
+    };
+    (
+        maps.albedo
+            .as_ref()
+            .map(|a| view(a, &|v| byte(linear_to_srgb(v)))),
+        maps.normal
+            .as_ref()
+            .map(|n| view(n, &|v| byte(v * 0.5 + 0.5))),
+    )
+}
+
+/// PNG bytes of an 8-bit RGB image.
+pub fn png_bytes(img: &RgbImage) -> Vec<u8> {
+    let mut out = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut out)
+        .write_image(
+            img.as_raw(),
+            img.width(),
+            img.height(),
+            image::ExtendedColorType::Rgb8,
+        )
+        .expect("encoding an in-memory RGB image cannot fail");
+    out
+}
+
+/// JPEG bytes of an 8-bit RGB image.
+pub fn jpeg_bytes(img: &RgbImage, quality: u8) -> Vec<u8> {
+    let mut out = Cursor::new(Vec::new());
+    JpegEncoder::new_with_quality(&mut out, quality)
+        .write_image(
+            img.as_raw(),
+            img.width(),
+            img.height(),
+            image::ExtendedColorType::Rgb8,
+        )
+        .expect("encoding an in-memory RGB image cannot fail");
+    out.into_inner()
+}
+
+/// A `data:` URI.
+pub fn data_uri(mime: &str, bytes: &[u8]) -> String {
+    format!("data:{mime};base64,{}", base64(bytes))
+}
+
+/// Standard base64 with padding (RFC 4648).
+pub fn base64(bytes: &[u8]) -> String {
+    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
+    for chunk in bytes.chunks(3) {
+        let b = [
+            chunk[0],
+            *chunk.get(1).unwrap_or(&0),
+            *chunk.get(2).unwrap_or(&0),
+        ];
+        let n = (b[0] as u32) << 16 | (b[1] as u32) << 8 | b[2] as u32;
+        for k in 0..4 {
+            if k <= chunk.len() {
+                out.push(ALPHABET[(n >> (18 - 6 * k) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn base64_matches_rfc_4648_vectors() {
+        for (input, expected) in [
+            ("", ""),
+            ("f", "Zg=="),
+            ("fo", "Zm8="),
+            ("foo", "Zm9v"),
+            ("foob", "Zm9vYg=="),
+            ("fooba", "Zm9vYmE="),
+            ("foobar", "Zm9vYmFy"),
+        ] {
+            assert_eq!(base64(input.as_bytes()), expected);
+        }
+    }
+
+    #[test]
+    fn reduction_fits_the_display_side_and_covers_every_pixel() {
+        let r = Reduction::for_size(4912, 3264);
+        assert_eq!(r.factor, 5);
+        assert!(r.width <= DISPLAY_MAX_SIDE && r.width * r.factor >= 4912);
+        assert!(r.height * r.factor >= 3264);
+        let r = Reduction::for_size(300, 200);
+        assert_eq!((r.factor, r.width, r.height), (1, 300, 200));
+    }
+
+    #[test]
+    fn class_blocks_take_the_most_common_class() {
+        let plane = Plane::from_vec(2, 2, vec![0.0, 2.0, 2.0, 5.0]).unwrap();
+        let r = Reduction {
+            factor: 2,
+            width: 1,
+            height: 1,
+        };
+        let img = class_image(&plane, &r, |c| [c, 0, 0]);
+        assert_eq!(img.get_pixel(0, 0).0, [2, 0, 0]);
+    }
+}

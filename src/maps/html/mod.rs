@@ -1,0 +1,572 @@
+//! `report.html`: one self-contained page per solve, built from `report.json` and the maps on
+//! disk (everything embedded as `data:` URIs, the script and style inline, no network): the
+//! maps at display size with a loupe at full resolution, where the solve went wrong (per-pixel
+//! status, fit, predicted error and residual, class shares, warnings with what to do), a
+//! WebGL relight under a light dragged over the hemisphere (GGX or seed 004's cloth BRDF) with
+//! the rig's LEDs seen from above, and the provenance in `report.json`.
+//!
+//! A page whose maps are missing or whose `report.json` is damaged says so and shows what is
+//! left. `psscan report --render-light` renders the relight on the CPU ([`relight::render`])
+//! from the same textures, for comparison with the canvas.
+
+pub mod frames;
+pub mod images;
+pub mod relight;
+mod warnings;
+
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+use serde_json::{json, Value};
+
+use crate::error::{Error, Result};
+use crate::fsutil::write_atomic;
+use crate::maps::encode::NormalConvention;
+use crate::maps::REPORT_FILE;
+use images::{FullMaps, Reduction};
+use relight::{RelightParams, RelightTextures};
+
+pub use frames::{write_frame_strip, FRAME_STRIP_FILE};
+
+/// The page's file name in the solve folder.
+pub const PAGE_FILE: &str = "report.html";
+
+/// The page must stay under this size (a 16 MP solve included).
+pub const PAGE_BUDGET_BYTES: usize = 25_000_000;
+
+/// What the loupe's full-resolution views may take of the budget (base64 included); the rest
+/// is the display maps, the frame previews and the script. Above it the loupe steps down
+/// to every 2nd, 3rd ... pixel and the page says so.
+const LOUPE_BUDGET_BYTES: usize = 16_000_000;
+
+/// JPEG quality of the loupe views.
+const LOUPE_QUALITY: u8 = 88;
+
+const TEMPLATE: &str = include_str!("page.html");
+const STYLE: &str = include_str!("page.css");
+const SCRIPT: &str = include_str!("page.js");
+const VERTEX_SHADER: &str = include_str!("relight.vert");
+const FRAGMENT_SHADER: &str = include_str!("relight.frag");
+
+/// What building the page found, for `psscan report --json`.
+#[derive(Clone, Debug, Serialize)]
+pub struct PageSummary {
+    pub path: PathBuf,
+    pub bytes: usize,
+    pub width: usize,
+    pub height: usize,
+    pub display: Reduction,
+    /// 1: the loupe shows every pixel; n: every n-th (to stay within the size budget).
+    pub loupe_step: usize,
+    /// Maps that could not be read, in words.
+    pub missing: Vec<String>,
+    /// Why `report.json` could not be used, when it could not.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub report_error: Option<String>,
+}
+
+/// Reads `report.json`: the value, or why it cannot be used.
+fn read_report(dir: &Path) -> std::result::Result<Value, String> {
+    let path = dir.join(REPORT_FILE);
+    let text = std::fs::read_to_string(&path)
+        .map_err(|e| format!("{}: cannot be read ({e})", path.display()))?;
+    match serde_json::from_str::<Value>(&text) {
+        Ok(v) if v.is_object() => Ok(v),
+        Ok(_) => Err(format!("{}: is not a JSON object", path.display())),
+        Err(e) => Err(format!("{}: is damaged ({e})", path.display())),
+    }
+}
+
+fn normal_convention(report: Option<&Value>) -> NormalConvention {
+    match report
+        .and_then(|r| r.get("normal_convention"))
+        .and_then(Value::as_str)
+    {
+        Some("directx") => NormalConvention::DirectX,
+        _ => NormalConvention::OpenGl,
+    }
+}
+
+/// The relight textures of the solve in `dir` (what the page's canvas samples).
+pub fn relight_textures(dir: &Path) -> Result<RelightTextures> {
+    let report = read_report(dir).ok();
+    let maps = FullMaps::read(dir, normal_convention(report.as_ref()));
+    let reduction = Reduction::for_size(maps.width, maps.height);
+    images::relight_textures(&maps, &reduction).ok_or_else(|| {
+        Error::Unsupported(format!(
+            "{}: no relight without the albedo and normal maps ({})",
+            dir.display(),
+            maps.missing.join("; ")
+        ))
+    })
+}
+
+/// Renders the page's relight on the CPU into a PNG at `out`.
+pub fn render_relight_png(dir: &Path, params: &RelightParams, out: &Path) -> Result<(u32, u32)> {
+    let textures = relight_textures(dir)?;
+    let img = relight::render(&textures, params);
+    write_atomic(out, &images::png_bytes(&img))?;
+    Ok(img.dimensions())
+}
+
+/// Builds `report.html` in `dir` from what the folder holds, and writes it atomically.
+pub fn write_report_page(dir: &Path) -> Result<PageSummary> {
+    let (html, mut summary) = build_page(dir);
+    summary.path = dir.join(PAGE_FILE);
+    summary.bytes = html.len();
+    write_atomic(&summary.path, html.as_bytes())?;
+    Ok(summary)
+}
+
+/// An `<img>` with a `data:` URI.
+fn img_tag(id: &str, mime: &str, bytes: &[u8], alt: &str) -> String {
+    format!(
+        "<img id=\"{id}\" alt=\"{}\" src=\"{}\">",
+        escape(alt),
+        images::data_uri(mime, bytes)
+    )
+}
+
+/// Text for HTML element content and attribute values.
+pub fn escape(text: &str) -> String {
+    text.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+/// The loupe's full-resolution JPEGs, the finest sampling that fits the budget.
+fn loupe_views(maps: &FullMaps) -> (usize, Vec<(String, Vec<u8>)>) {
+    let mut step = 1;
+    loop {
+        let (albedo, normal) = images::full_views(maps, step);
+        let views: Vec<(String, Vec<u8>)> = [("albedo", albedo), ("normal", normal)]
+            .into_iter()
+            .filter_map(|(name, img)| {
+                img.map(|i| (name.to_string(), images::jpeg_bytes(&i, LOUPE_QUALITY)))
+            })
+            .collect();
+        let base64_bytes: usize = views.iter().map(|(_, b)| b.len() * 4 / 3).sum();
+        if base64_bytes <= LOUPE_BUDGET_BYTES || step >= 16 {
+            return (step, views);
+        }
+        // Bytes scale with pixels: jump straight to a step that should fit.
+        let ratio = (base64_bytes as f64 / LOUPE_BUDGET_BYTES as f64).sqrt();
+        step = (step as f64 * ratio).ceil().max(step as f64 + 1.0) as usize;
+    }
+}
+
+struct Parts {
+    maps: String,
+    classes: String,
+    loupe: String,
+    relight: String,
+    frames: String,
+    data: Value,
+}
+
+/// Status classes: name, colour, and the words under the legend.
+pub const STATUS_CLASSES: [(&str, [u8; 3], &str); 6] = [
+    ("solved", [46, 160, 67], "a normal and albedo were fitted"),
+    (
+        "outside_mask",
+        [110, 110, 110],
+        "not part of the mask or region",
+    ),
+    ("dark", [40, 60, 200], "too few lights above the noise"),
+    ("saturated", [250, 220, 40], "too few lights below clipping"),
+    ("non_finite", [230, 30, 140], "NaN or infinite input"),
+    (
+        "degenerate",
+        [255, 120, 0],
+        "lights left too close to coplanar",
+    ),
+];
+
+/// Fit classes (for solved pixels); unsolved pixels are drawn black.
+pub const FIT_CLASSES: [(&str, [u8; 3], &str); 3] = [
+    ("least_squares", [90, 140, 200], "passed the model test"),
+    (
+        "robust",
+        [255, 150, 0],
+        "outlier lights dropped or down-weighted",
+    ),
+    ("sheen", [190, 80, 220], "fitted with the sheen lobe"),
+];
+
+fn class_counts(
+    plane: &crate::plane::Plane,
+    maps: &FullMaps,
+    solved_only: bool,
+    n: usize,
+) -> Vec<usize> {
+    let mut counts = vec![0usize; n];
+    for (i, &v) in plane.data.iter().enumerate() {
+        if solved_only && !maps.solved(i) {
+            continue;
+        }
+        if v >= 0.0 && (v as usize) < n {
+            counts[v as usize] += 1;
+        }
+    }
+    counts
+}
+
+fn legend_classes(classes: &[(&str, [u8; 3], &str)], counts: &[usize]) -> String {
+    let total: usize = counts.iter().sum::<usize>().max(1);
+    let rows: String = classes
+        .iter()
+        .zip(counts)
+        .map(|((name, c, words), &count)| {
+            format!(
+                "<tr><td><span class=\"swatch\" style=\"background:rgb({},{},{})\"></span>{}</td>\
+                 <td class=\"num\">{count}</td><td class=\"num\">{:.2} %</td><td>{}</td></tr>",
+                c[0],
+                c[1],
+                c[2],
+                escape(name),
+                100.0 * count as f64 / total as f64,
+                escape(words)
+            )
+        })
+        .collect();
+    format!("<table class=\"legend\"><tr><th>class</th><th>pixels</th><th>share</th><th></th></tr>{rows}</table>")
+}
+
+fn figure(title: &str, img: &str, caption: &str) -> String {
+    format!("<figure class=\"map\"><figcaption>{}</figcaption><div class=\"frame\">{img}</div><div class=\"caption\">{caption}</div></figure>", escape(title))
+}
+
+fn missing_figure(title: &str, why: &str) -> String {
+    format!(
+        "<figure class=\"map missing\"><figcaption>{}</figcaption><div class=\"absent\">{}</div></figure>",
+        escape(title),
+        escape(why)
+    )
+}
+
+fn class_parts(maps: &FullMaps, r: &Reduction) -> String {
+    let Some(conf) = maps.confidence.as_ref() else {
+        return missing_figure(
+            "per-pixel status, fit, predicted error and residual",
+            "confidence.exr is missing or unreadable: no per-pixel classes to show",
+        );
+    };
+    let mut out = String::new();
+    let status = images::class_image(&conf[0], r, |c| {
+        STATUS_CLASSES.get(c as usize).map_or([0, 0, 0], |s| s.1)
+    });
+    out += &figure(
+        "status",
+        &img_tag(
+            "img-status",
+            "image/png",
+            &images::png_bytes(&status),
+            "per-pixel status",
+        ),
+        &legend_classes(&STATUS_CLASSES, &class_counts(&conf[0], maps, false, 6)),
+    );
+    let fit_img = {
+        let mut fit_or_none = conf[1].clone();
+        for (i, v) in fit_or_none.data.iter_mut().enumerate() {
+            if !maps.solved(i) {
+                *v = 255.0;
+            }
+        }
+        images::class_image(&fit_or_none, r, |c| {
+            FIT_CLASSES.get(c as usize).map_or([0, 0, 0], |s| s.1)
+        })
+    };
+    out += &figure(
+        "fit",
+        &img_tag(
+            "img-fit",
+            "image/png",
+            &images::png_bytes(&fit_img),
+            "which fit each pixel got",
+        ),
+        &(legend_classes(&FIT_CLASSES, &class_counts(&conf[1], maps, true, 3))
+            + "<p class=\"note\">black: not solved</p>"),
+    );
+    let legend = images::png_bytes(&images::viridis_legend());
+    for (k, id, title, unit) in [
+        (2, "img-predicted", "predicted normal error", "deg"),
+        (3, "img-residual", "residual", "(relative)"),
+    ] {
+        let max = images::scale_max(&conf[k], maps);
+        let img = images::scalar_image(&conf[k], maps, r, max);
+        let scale = format!(
+            "<div class=\"scale\"><span>0</span>{}<span>{} {unit}</span></div>\
+             <p class=\"note\">block means over solved pixels; the scale ends at the 99th \
+             percentile; dark gray: not solved</p>",
+            img_tag(
+                &format!("{id}-legend"),
+                "image/png",
+                &legend,
+                "colour scale"
+            ),
+            fmt_value(max)
+        );
+        out += &figure(
+            title,
+            &img_tag(id, "image/png", &images::png_bytes(&img), title),
+            &scale,
+        );
+    }
+    out
+}
+
+fn fmt_value(v: f32) -> String {
+    if v >= 100.0 {
+        format!("{v:.0}")
+    } else if v >= 1.0 {
+        format!("{v:.2}")
+    } else {
+        format!("{v:.3e}")
+    }
+}
+
+fn map_parts(maps: &FullMaps, textures: Option<&RelightTextures>) -> String {
+    let mut out = String::new();
+    match textures {
+        Some(t) => {
+            out += &figure(
+                "albedo",
+                &img_tag(
+                    "img-albedo",
+                    "image/png",
+                    &images::png_bytes(&t.albedo),
+                    "albedo",
+                ),
+                "sRGB; hover for the loupe, click to zoom",
+            );
+            out += &figure(
+                "normal",
+                &img_tag(
+                    "img-normal",
+                    "image/png",
+                    &images::png_bytes(&t.normal),
+                    "normal",
+                ),
+                "OpenGL convention (+Y up), n * 0.5 + 0.5; hover for the loupe, click to zoom",
+            );
+        }
+        None => {
+            for (name, map) in [
+                ("albedo", maps.albedo.is_some()),
+                ("normal", maps.normal.is_some()),
+            ] {
+                if !map {
+                    out += &missing_figure(name, &format!("{name} map missing or unreadable"));
+                }
+            }
+            if maps.albedo.is_some() != maps.normal.is_some() {
+                out += "<p class=\"note\">the map that exists is not shown: the page's views \
+                        are built from albedo and normal together</p>";
+            }
+        }
+    }
+    out += "<figure class=\"map\"><figcaption>height and roughness</figcaption><p class=\"note\">\
+            not derived by this solve: psscan writes albedo, normal and confidence maps</p></figure>";
+    out
+}
+
+fn loupe_parts(maps: &FullMaps) -> (usize, String) {
+    if maps.albedo.is_none() || maps.normal.is_none() {
+        return (1, String::new());
+    }
+    let (step, views) = loupe_views(maps);
+    let tags = views
+        .iter()
+        .map(|(name, bytes)| {
+            format!(
+                "<img class=\"loupe-src\" id=\"loupe-{name}\" alt=\"{name} at full resolution\" src=\"{}\">",
+                images::data_uri("image/jpeg", bytes)
+            )
+        })
+        .collect();
+    (step, tags)
+}
+
+fn frames_part(dir: &Path, report: Option<&Value>) -> (String, Value) {
+    let path = dir.join(FRAME_STRIP_FILE);
+    let count = report
+        .and_then(|r| r.get("lights"))
+        .and_then(Value::as_array)
+        .map_or(0, Vec::len);
+    match std::fs::read(&path) {
+        Ok(bytes) if count > 0 => match image::load_from_memory(&bytes) {
+            Ok(img) => (
+                img_tag(
+                    "img-frames",
+                    "image/jpeg",
+                    &bytes,
+                    "the frames, one per light",
+                ),
+                json!({"count": count, "tile_w": img.width() as usize / count, "tile_h": img.height()}),
+            ),
+            Err(e) => (
+                String::new(),
+                json!({"why": format!("{}: unreadable ({e})", path.display())}),
+            ),
+        },
+        Ok(_) => (
+            String::new(),
+            json!({"why": "frames not available: report.json lists no lights"}),
+        ),
+        Err(_) => (
+            String::new(),
+            json!({"why": format!("frames not available: {} is not in the solve folder", FRAME_STRIP_FILE)}),
+        ),
+    }
+}
+
+fn build_parts(dir: &Path, report: std::result::Result<&Value, &str>) -> (Parts, PageSummary) {
+    let maps = FullMaps::read(dir, normal_convention(report.ok()));
+    let r = Reduction::for_size(maps.width, maps.height);
+    let textures = images::relight_textures(&maps, &r);
+    let (loupe_step, loupe) = loupe_parts(&maps);
+    let (frames, frames_data) = frames_part(dir, report.ok());
+    let relight = match &textures {
+        Some(_) => String::new(),
+        None => {
+            "<p class=\"absent\">no relight: it needs both the albedo and normal maps</p>".into()
+        }
+    };
+    let warnings = warnings::collect(report, &maps);
+    let data = json!({
+        "report": report.ok(),
+        "report_error": report.err(),
+        "full": {"width": maps.width, "height": maps.height},
+        "display": r,
+        "loupe_step": loupe_step,
+        "relight": textures.is_some(),
+        "frames": frames_data,
+        "defaults": RelightParams::default(),
+        "background": relight::BACKGROUND,
+    });
+    let summary = PageSummary {
+        path: dir.join(PAGE_FILE),
+        bytes: 0,
+        width: maps.width,
+        height: maps.height,
+        display: r,
+        loupe_step,
+        missing: maps.missing.clone(),
+        report_error: report.err().map(str::to_string),
+    };
+    let parts = Parts {
+        maps: map_parts(&maps, textures.as_ref()),
+        classes: warnings::render(&warnings) + &class_parts(&maps, &r),
+        loupe,
+        relight,
+        frames,
+        data,
+    };
+    (parts, summary)
+}
+
+/// The page for the solve in `dir`, and what was found.
+pub fn build_page(dir: &Path) -> (String, PageSummary) {
+    let report = read_report(dir);
+    let (parts, summary) = build_parts(dir, report.as_ref().map_err(String::as_str));
+    // The page is built in the solve's staging folder, whose name is temporary: name it after
+    // the set it solved.
+    let set_name = report
+        .as_ref()
+        .ok()
+        .and_then(|r| r.get("capture")?.as_str().map(PathBuf::from))
+        .and_then(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()));
+    let title = format!(
+        "psscan scan report: {}",
+        set_name.unwrap_or_else(|| dir.display().to_string())
+    );
+    let subtitle = match &report {
+        Ok(r) => format!(
+            "{} x {} pixels, set {}, rig {}, psscan {}",
+            summary.width,
+            summary.height,
+            r.get("capture")
+                .and_then(Value::as_str)
+                .unwrap_or("(not recorded)"),
+            r.get("rig")
+                .and_then(Value::as_str)
+                .unwrap_or("(not recorded)"),
+            r.get("psscan_version")
+                .and_then(Value::as_str)
+                .unwrap_or("?")
+        ),
+        Err(e) => format!("report.json unusable: {e}"),
+    };
+    // `</` inside a script element would end it early.
+    let data = parts.data.to_string().replace("</", "<\\/");
+    let html = fill(
+        TEMPLATE,
+        &[
+            ("TITLE", &escape(&title)),
+            ("SUBTITLE", &escape(&subtitle)),
+            ("STYLE", STYLE),
+            ("MAPS", &parts.maps),
+            ("CLASSES", &parts.classes),
+            ("LOUPE", &parts.loupe),
+            ("RELIGHT", &parts.relight),
+            ("FRAMES", &parts.frames),
+            ("VERTEX_SHADER", VERTEX_SHADER),
+            ("FRAGMENT_SHADER", FRAGMENT_SHADER),
+            ("DATA", &data),
+            ("SCRIPT", SCRIPT),
+        ],
+    );
+    (html, summary)
+}
+
+/// Replaces each `{{KEY}}` of `template` in one pass (inserted text is not scanned again).
+fn fill(template: &str, values: &[(&str, &str)]) -> String {
+    let mut out =
+        String::with_capacity(template.len() + values.iter().map(|(_, v)| v.len()).sum::<usize>());
+    let mut rest = template;
+    while let Some(start) = rest.find("{{") {
+        out.push_str(&rest[..start]);
+        let after = &rest[start + 2..];
+        match after.find("}}").and_then(|end| {
+            values
+                .iter()
+                .find(|(k, _)| *k == &after[..end])
+                .map(|(_, v)| (end, v))
+        }) {
+            Some((end, value)) => {
+                out.push_str(value);
+                rest = &after[end + 2..];
+            }
+            None => {
+                out.push_str("{{");
+                rest = after;
+            }
+        }
+    }
+    out.push_str(rest);
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fill_replaces_known_keys_once_and_keeps_unknown_braces() {
+        let out = fill("a{{X}}b{{Y}}c{{Z}}", &[("X", "{{Y}}"), ("Y", "2")]);
+        assert_eq!(out, "a{{Y}}b2c{{Z}}");
+    }
+
+    #[test]
+    fn a_damaged_report_and_missing_maps_are_named_on_the_page() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join(REPORT_FILE), "{\"rig\": \"x\",").unwrap();
+        let (html, summary) = build_page(dir.path());
+        let err = summary.report_error.unwrap();
+        assert!(err.contains("damaged"), "{err}");
+        assert!(html.contains("report.json") && html.contains("damaged"));
+        assert!(html.contains("albedo.png") && html.contains("missing"));
+        assert!(html.contains("confidence.exr is missing"));
+    }
+}
