@@ -341,7 +341,7 @@ fn verdict(
     let far: Vec<String> = leds
         .iter()
         .enumerate()
-        .filter(|(_, l)| !(l.moved_mm <= limit_mm))
+        .filter(|(_, l)| l.moved_mm.is_nan() || l.moved_mm > limit_mm)
         .map(|(k, l)| format!("LED {k} {:.0} mm", l.moved_mm))
         .collect();
     if !far.is_empty() {
@@ -353,7 +353,7 @@ fn verdict(
         ));
     }
     let limit = expected * (1.0 + RESIDUAL_SIGMAS / (2.0 * blocks.max(1) as f64).sqrt());
-    if !(rms <= limit) {
+    if rms.is_nan() || rms > limit {
         reasons.push(format!(
             "the rms relative residual {rms:.3} exceeds the {limit:.3} that sensor noise and \
              the model's {:.0} % accuracy allow",
