@@ -241,12 +241,42 @@ fn a_failing_camera_command_is_named_and_leaves_the_leds_off() {
     let tmp = tempfile::tempdir().unwrap();
     let emu = emulator(tmp.path());
     let set = tmp.path().join("set");
-    // Succeeds for the dark frame and L00, then reports a full card.
+    // Succeeds for the dark frame and L00 (two different RAW files), then reports a full card.
     let counter = tmp.path().join("count");
+    for n in 0..2u16 {
+        let (w, h) = (32, 24);
+        let mosaic = psscan::raw::Mosaic {
+            width: w,
+            height: h,
+            pattern: psscan::raw::Mosaic::parse_pattern("RGGB").unwrap(),
+            black: [[600.0; 2]; 2],
+            white: 15600.0,
+            samples: vec![1000 + 100 * n; w * h],
+        };
+        let meta = psscan::raw::RawMeta {
+            make: "psscan".into(),
+            model: "test".into(),
+            width: w,
+            height: h,
+            iso: Some(100),
+            shutter_s: Some(0.1),
+            aperture: Some(8.0),
+        };
+        let bytes = psscan::raw::encode_dng(
+            &mosaic,
+            &meta,
+            14,
+            [1.0; 3],
+            psscan::raw::DngStorage::Lossless,
+        )
+        .unwrap();
+        std::fs::write(tmp.path().join(format!("shot{n}.dng")), bytes).unwrap();
+    }
     let template = format!(
         "cmd:sh -c 'n=$(cat {c} 2>/dev/null || echo 0); echo $((n+1)) > {c}; \
-         if [ $n -ge 2 ]; then echo card full >&2; exit 5; fi; printf raw > \"$1\"' sh {{out}}",
-        c = s(&counter)
+         if [ $n -ge 2 ]; then echo card full >&2; exit 5; fi; cp {d}/shot$n.dng \"$1\"' sh {{out}}",
+        c = s(&counter),
+        d = s(tmp.path())
     );
     let out = psscan(&[
         "capture",

@@ -155,3 +155,206 @@ fn mutated_raw_files_never_panic_and_errors_name_the_file() {
     eprintln!("fuzz: {decoded} mutated files decoded, {refused} refused cleanly");
     assert!(refused > 0 && decoded > 0);
 }
+
+/// The lossless-JPEG segments (offset, length) of a DNG psscan wrote: the TileOffsets and
+/// TileByteCounts (or strip) entries of its first IFD, read the way the TIFF spec lays them out.
+fn compressed_segments(dng: &[u8]) -> Vec<(usize, usize)> {
+    let u16_at = |p: usize| u16::from_le_bytes([dng[p], dng[p + 1]]) as usize;
+    let u32_at = |p: usize| u32::from_le_bytes(dng[p..p + 4].try_into().unwrap()) as usize;
+    assert_eq!(&dng[..2], b"II");
+    let ifd = u32_at(4);
+    let (mut offsets, mut counts) = (Vec::new(), Vec::new());
+    for e in 0..u16_at(ifd) {
+        let entry = ifd + 2 + 12 * e;
+        let (tag, typ, n) = (u16_at(entry), u16_at(entry + 2), u32_at(entry + 4));
+        if ![273, 279, 324, 325].contains(&tag) {
+            continue;
+        }
+        let size = if typ == 3 { 2 } else { 4 };
+        let at = if n * size <= 4 {
+            entry + 8
+        } else {
+            u32_at(entry + 8)
+        };
+        let values: Vec<usize> = (0..n)
+            .map(|k| {
+                if typ == 3 {
+                    u16_at(at + 2 * k)
+                } else {
+                    u32_at(at + 4 * k)
+                }
+            })
+            .collect();
+        match tag {
+            273 | 324 => offsets = values,
+            279 | 325 => counts = values,
+            _ => {}
+        }
+    }
+    assert!(!offsets.is_empty() && offsets.len() == counts.len());
+    offsets.into_iter().zip(counts).collect()
+}
+
+/// Damage inside one compressed segment: bytes set at random, bits flipped, or a run
+/// overwritten, a quarter of the time in the stream's headers (SOF, Huffman tables, SOS).
+fn mutate_stream(
+    rng: &mut Xoshiro256PlusPlus,
+    data: &[u8],
+    segments: &[(usize, usize)],
+) -> Vec<u8> {
+    let mut out = data.to_vec();
+    let (start, len) = segments[rng.gen_range(0..segments.len())];
+    let span = if rng.gen_bool(0.25) {
+        len.min(120)
+    } else {
+        len
+    };
+    for _ in 0..rng.gen_range(1..=8) {
+        let at = start + rng.gen_range(0..span);
+        match rng.gen_range(0..3) {
+            0 => out[at] = rng.gen(),
+            1 => out[at] ^= 1 << rng.gen_range(0..8),
+            _ => {
+                let run = rng.gen_range(1..=32).min(start + len - at);
+                let fill = if rng.gen_bool(0.5) { 0x00 } else { 0xFF };
+                out[at..at + run].fill(fill);
+            }
+        }
+    }
+    out
+}
+
+/// The child side of `damaged_compressed_streams_stay_within_memory_and_time_caps`: decodes
+/// the file `PSSCAN_FUZZ_CHILD` names and prints the outcome. Ignored: only run as a child.
+#[test]
+#[ignore = "run by damaged_compressed_streams_stay_within_memory_and_time_caps in a child process"]
+fn decode_child() {
+    let Some(path) = std::env::var_os("PSSCAN_FUZZ_CHILD") else {
+        return;
+    };
+    raw::quiet_decoder_panics();
+    let path = std::path::PathBuf::from(path);
+    match raw::read_raw(&path) {
+        Ok(frame) => println!("DECODED {}x{}", frame.mosaic.width, frame.mosaic.height),
+        Err(e) => println!("REFUSED {e}"),
+    }
+}
+
+/// The address space each child may use: what a 320x240 frame needs is a few MB; the test
+/// harness, its threads and the binary take the rest. A decoder sizing its work from a
+/// damaged stream would need gigabytes (the issue measured 16.8 GB) and fails to allocate.
+const CHILD_MEMORY_BYTES: u64 = 1 << 30;
+/// A hang detector, not a speed limit: a frame decodes in milliseconds.
+const CHILD_TIME_CAP: std::time::Duration = std::time::Duration::from_secs(60);
+
+/// Runs `decode_child` on `path` in a child process under the memory and time caps; returns
+/// its stdout, or why it failed.
+fn decode_in_child(path: &Path) -> Result<String, String> {
+    use std::os::unix::process::CommandExt;
+    use std::process::{Command, Stdio};
+    let mut command = Command::new(std::env::current_exe().unwrap());
+    command
+        .args([
+            "--ignored",
+            "--exact",
+            "decode_child",
+            "--nocapture",
+            "--test-threads",
+            "1",
+        ])
+        .env("PSSCAN_FUZZ_CHILD", path)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    // SAFETY: setrlimit is async-signal-safe; nothing else runs between fork and exec.
+    unsafe {
+        command.pre_exec(|| {
+            let limit = libc::rlimit {
+                rlim_cur: CHILD_MEMORY_BYTES,
+                rlim_max: CHILD_MEMORY_BYTES,
+            };
+            if libc::setrlimit(libc::RLIMIT_AS, &limit) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let mut child = command.spawn().map_err(|e| e.to_string())?;
+    let started = std::time::Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().map_err(|e| e.to_string())? {
+            let out = child.wait_with_output().map_err(|e| e.to_string())?;
+            let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+            if !status.success() {
+                return Err(format!(
+                    "child {status}: {}",
+                    String::from_utf8_lossy(&out.stderr)
+                ));
+            }
+            return Ok(stdout);
+        }
+        if started.elapsed() > CHILD_TIME_CAP {
+            let _ = child.kill();
+            let _ = child.wait();
+            return Err(format!("still decoding after {CHILD_TIME_CAP:?}"));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+}
+
+/// Valid DNG containers (psscan's writer, 320x240 like the issue's synthetic set) with their
+/// compressed image streams damaged: each is decoded in a child process with its address
+/// space capped; every one must come back decoded or refused with the file named, within the
+/// caps.
+#[test]
+fn damaged_compressed_streams_stay_within_memory_and_time_caps() {
+    let (w, h) = (320, 240);
+    let mosaic = Mosaic {
+        width: w,
+        height: h,
+        pattern: Mosaic::parse_pattern("RGGB").unwrap(),
+        black: [[600.0; 2]; 2],
+        white: 15600.0,
+        samples: (0..w * h)
+            .map(|i| (2000 + (i % w) * 20 + (i / w) * 7 + (i * 7919) % 97) as u16)
+            .collect(),
+    };
+    let meta = RawMeta {
+        make: "psscan".into(),
+        model: "fuzz".into(),
+        width: w,
+        height: h,
+        iso: Some(100),
+        shutter_s: Some(0.1),
+        aperture: Some(8.0),
+    };
+    let dng = raw::encode_dng(&mosaic, &meta, 14, [0.55, 1.0, 0.72], DngStorage::Lossless).unwrap();
+    let segments = compressed_segments(&dng);
+    let dir = tempfile::tempdir().unwrap();
+    let scale: usize = std::env::var("PSSCAN_FUZZ_ITERS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1);
+    let mut rng = Xoshiro256PlusPlus::seed_from_u64(0xda7a);
+    let (mut decoded, mut refused) = (0, 0);
+    for n in 0..60 * scale {
+        let name = format!("damaged-{n}.dng");
+        let path = dir.path().join(&name);
+        std::fs::write(&path, mutate_stream(&mut rng, &dng, &segments)).unwrap();
+        let out = decode_in_child(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
+        // The harness writes "test decode_child ... " before the child's own output.
+        let outcome = |tag: &str| out.lines().find_map(|l| l.find(tag).map(|i| &l[i..]));
+        if let Some(line) = outcome("DECODED ") {
+            assert_eq!(line, format!("DECODED {w}x{h}"), "{name}");
+            decoded += 1;
+        } else if let Some(line) = outcome("REFUSED ") {
+            assert!(line.contains(&name), "{name}: {line}");
+            refused += 1;
+        } else {
+            panic!("{name}: the child printed no outcome: {out}");
+        }
+    }
+    eprintln!(
+        "damaged streams: {decoded} decoded (to be judged by the set's checks), {refused} refused"
+    );
+    assert!(refused > 0);
+}

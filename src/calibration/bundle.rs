@@ -128,6 +128,9 @@ pub struct Parts<'a> {
 /// Writes the files of a bundle into `dir`, then its index (last, so a bundle without an
 /// index is an unfinished one), and returns the index.
 pub fn write_parts(dir: &Path, rig_name: &str, name: &str, parts: &Parts) -> Result<BundleIndex> {
+    if let Some(lights) = &parts.calibration.lights {
+        lights.check_usable(dir)?;
+    }
     create_dir_all(dir)?;
     let numbers = toml::to_string_pretty(parts.calibration)
         .map_err(|e| Error::Invalid(format!("calibration does not serialise: {e}")))?;
@@ -242,6 +245,11 @@ pub fn read(dir: &Path) -> Result<Bundle> {
         std::fs::read_to_string(&numbers_path).map_err(|e| Error::io(&numbers_path, e))?;
     let calibration: Calibration = toml::from_str(&numbers)
         .map_err(|e| Error::config(&numbers_path, "calibration", e.message().to_string()))?;
+    if let Some(lights) = &calibration.lights {
+        // A bundle assembled before fits were judged, or edited by hand: its lights would
+        // make every solve with it wrong.
+        lights.check_usable(&numbers_path)?;
+    }
     let rig = Rig::load(&dir.join(RIG_FILE))?;
     let gains = if index.files.contains_key(GAINS_FILE) {
         let path = dir.join(GAINS_FILE);

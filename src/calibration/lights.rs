@@ -18,6 +18,18 @@ use crate::rig::{Led, Rig};
 /// Positions that move less than this in an iteration have converged (m).
 pub const CONVERGED_STEP_M: f64 = 1e-5;
 const MAX_ITERATIONS: usize = 50;
+/// How far a hand-measured LED position may lie from the LED (m): the rig's stated tolerance.
+pub const HAND_LED_ERROR_M: f64 = 0.03;
+/// How close the white-sheet fit puts each LED to where it is (m).
+pub const FITTED_LED_ERROR_M: f64 = 0.005;
+/// Relative accuracy of the point-source-and-beam model on a real sheet, which the gain grids
+/// then correct: the LEDs' beams are not exactly `cos^m`, and a "near-perfect" diffuse sheet is
+/// uniform to a few percent. A fit whose residual exceeds this (plus the sensor noise) is not
+/// describing this rig and sheet.
+pub const MODEL_RELATIVE_BUDGET: f64 = 0.05;
+/// How many standard deviations of its own sampling spread an rms residual may exceed its
+/// expectation by before the fit is called implausible.
+const RESIDUAL_SIGMAS: f64 = 5.0;
 
 /// One iteration of the joint fit.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -49,9 +61,42 @@ pub struct LightFit {
     pub leds: Vec<FittedLed>,
     pub iterations: Vec<Iteration>,
     pub converged: bool,
+    /// Why the fit cannot be used (empty: accepted). A fit that did not converge, moved an LED
+    /// further from its hand measurement than the rig's tolerance allows, or leaves a residual
+    /// beyond the noise and the model's accuracy is written with its reasons and refused by
+    /// the bundle step and by every reader of a bundle.
+    #[serde(default)]
+    pub rejected_because: Vec<String>,
 }
 
 impl LightFit {
+    /// Why this fit must not be used; empty when it may. A fit that did not converge is
+    /// refused even when read from a file written before the reasons were recorded.
+    pub fn problems(&self) -> Vec<String> {
+        let mut problems = self.rejected_because.clone();
+        if !self.converged && !problems.iter().any(|p| p.contains("converge")) {
+            problems.push(format!(
+                "the LED fit did not converge in {} iterations",
+                self.iterations.len()
+            ));
+        }
+        problems
+    }
+
+    /// `Ok` when the fit may be used; otherwise an error naming `source` and every reason.
+    pub fn check_usable(&self, source: &std::path::Path) -> Result<()> {
+        let problems = self.problems();
+        if problems.is_empty() {
+            return Ok(());
+        }
+        Err(Error::Invalid(format!(
+            "{}: the white-sheet LED fit was rejected ({}); photograph the white sheet again, \
+             one photograph per LED in LED order, and check the rig's hand-measured LED positions",
+            source.display(),
+            problems.join("; ")
+        )))
+    }
+
     /// `rig` with its LEDs where the fit put them, with the fitted powers and colours.
     pub fn apply(&self, rig: &Rig) -> Rig {
         let mut out = rig.clone();
@@ -235,12 +280,87 @@ pub fn fit(rig: &Rig, sheet: &[SheetLight], progress: &dyn Progress) -> Result<L
                 rms_relative_residual: (cost(&fitted, points, values) / points.len() as f64).sqrt(),
             }
         })
-        .collect();
+        .collect::<Vec<FittedLed>>();
+    let expected = expected_residual(rig, &data, sheet);
+    let rms = iterations
+        .last()
+        .map_or(f64::NAN, |i| i.rms_relative_residual);
+    let blocks: usize = data.iter().map(|(p, _)| p.len()).sum();
+    let rejected_because = verdict(converged, iterations.len(), &leds, rms, expected, blocks);
     Ok(LightFit {
         leds,
         iterations,
         converged,
+        rejected_because,
     })
+}
+
+/// The rms relative residual a right fit leaves: per block, the sensor noise of its mean
+/// (`NoiseModel::from_sensor` at the block's signal over the pixels averaged) and the model's
+/// accuracy budget, added in quadrature and averaged over the blocks.
+fn expected_residual(
+    rig: &Rig,
+    data: &[(Vec<Vector3<f64>>, Vec<f64>)],
+    sheet: &[SheetLight],
+) -> f64 {
+    let noise = crate::solve::NoiseModel::from_sensor(&rig.sensor);
+    let (mut sum, mut n) = (0.0, 0usize);
+    for ((_, values), light) in data.iter().zip(sheet) {
+        let pixels = light.pixels_per_block.max(1) as f64;
+        for &v in values {
+            // The luminance as one sample's noise: three channels average some of it away, so
+            // this overstates the noise slightly, never the other way.
+            sum += noise.variance(v) / (v * v) / pixels + MODEL_RELATIVE_BUDGET.powi(2);
+            n += 1;
+        }
+    }
+    (sum / n.max(1) as f64).sqrt()
+}
+
+/// The reasons a fit is implausible. The rms of `blocks` residuals of expected size `expected`
+/// scatters by about `expected / sqrt(2 blocks)`; beyond `RESIDUAL_SIGMAS` of that the model
+/// does not describe the photographs. An LED the fit moved further than the hand measurement's
+/// tolerance plus the fit's own accuracy is somewhere the rig says it cannot be.
+fn verdict(
+    converged: bool,
+    iterations: usize,
+    leds: &[FittedLed],
+    rms: f64,
+    expected: f64,
+    blocks: usize,
+) -> Vec<String> {
+    let mut reasons = Vec::new();
+    if !converged {
+        reasons.push(format!(
+            "the LED fit did not converge in {iterations} iterations (an LED still moved more \
+             than {} mm in the last one)",
+            CONVERGED_STEP_M * 1e3
+        ));
+    }
+    let limit_mm = (HAND_LED_ERROR_M + FITTED_LED_ERROR_M) * 1e3;
+    let far: Vec<String> = leds
+        .iter()
+        .enumerate()
+        .filter(|(_, l)| l.moved_mm.is_nan() || l.moved_mm > limit_mm)
+        .map(|(k, l)| format!("LED {k} {:.0} mm", l.moved_mm))
+        .collect();
+    if !far.is_empty() {
+        reasons.push(format!(
+            "the fit moved {} from the hand measurement, more than the {limit_mm:.0} mm the \
+             rig's tolerance ({:.0} mm) and the fit's accuracy allow",
+            far.join(", "),
+            HAND_LED_ERROR_M * 1e3
+        ));
+    }
+    let limit = expected * (1.0 + RESIDUAL_SIGMAS / (2.0 * blocks.max(1) as f64).sqrt());
+    if rms.is_nan() || rms > limit {
+        reasons.push(format!(
+            "the rms relative residual {rms:.3} exceeds the {limit:.3} that sensor noise and \
+             the model's {:.0} % accuracy allow",
+            100.0 * MODEL_RELATIVE_BUDGET
+        ));
+    }
+    reasons
 }
 
 fn rms_residual(rig: &Rig, params: &[Vector4<f64>], data: &[(Vec<Vector3<f64>>, Vec<f64>)]) -> f64 {

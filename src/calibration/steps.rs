@@ -315,6 +315,7 @@ pub fn assemble_bundle(
     )?;
     let (rig, maps) = match &inputs.whitesheet {
         Some((path, sheet)) => {
+            sheet.lights.check_usable(path)?;
             if inputs.camera.is_some() && !same_camera(&composed, &sheet.rig) {
                 return Err(Error::Invalid(format!(
                     "{} was fitted with another camera or table pose than --camera and --table \

@@ -112,8 +112,7 @@ pub struct ChartVerdict {
 
 /// How far the LED positions may be off while the chart is read: the hand measurements (up
 /// to 3 cm, the figure) before the white sheet, the fit (within 5 mm) after it.
-pub const HAND_LED_ERROR_M: f64 = 0.03;
-pub const FITTED_LED_ERROR_M: f64 = 0.005;
+pub use super::lights::{FITTED_LED_ERROR_M, HAND_LED_ERROR_M};
 
 /// The default chart's place on the table: 120 x 50 mm centred under the camera.
 pub const CHART_WORLD: [f64; 4] = [-0.06, 0.06, -0.025, 0.025];
@@ -361,7 +360,8 @@ impl Wizard {
         })
     }
 
-    /// The white sheet: LED positions fitted from the hand measurements.
+    /// The white sheet: LED positions fitted from the hand measurements. A fit with problems
+    /// (`LightFit::problems`) is returned but not kept: the wizard stays at this step.
     pub fn take_white_sheet(
         &mut self,
         source: &mut dyn TargetSource,
@@ -372,6 +372,10 @@ impl Wizard {
         let frames = source.white_sheet("fit", 1, progress)?;
         let sheet = whitesheet::measure(&frames, &rig, reflectance, 8)?;
         let fit = lights::fit(&rig, &sheet, progress)?;
+        if !fit.problems().is_empty() {
+            // A rejected fit stays out of the state: the step is taken again.
+            return Ok(fit);
+        }
         self.state.calibration.lights = Some(fit.clone());
         self.state.calibration.sheet_reflectance = Some(reflectance);
         self.state.step = Step::Flatness;

@@ -6,6 +6,7 @@
 pub mod camera;
 pub mod diligent;
 pub mod emulator;
+pub mod frame_check;
 pub mod interrupt;
 pub mod lights;
 pub mod manifest;

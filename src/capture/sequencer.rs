@@ -411,6 +411,7 @@ fn shoot(
         }
         let bytes = std::fs::read(&scratch).map_err(|e| Error::io(&scratch, e))?;
         let file = planned.file(&shot.extension);
+        check_frame(writer, &file, &bytes).map_err(|m| Error::device(camera.name(), m))?;
         writer.add_frame(planned.kind(), expected, &file, &bytes)?;
         Ok((shot, file))
     })();
@@ -427,6 +428,32 @@ fn shoot(
         lit_at_fire: shot.lit,
         fired_unix_us: Some(shot.fired_unix_us),
     })
+}
+
+/// The frame must be what the manifest records, as large as the set's earlier RAW frames and
+/// no copy of one of them (`frame_check`); the set's first RAW frame is read back for its size.
+fn check_frame(
+    writer: &CaptureSetWriter,
+    file: &str,
+    bytes: &[u8],
+) -> std::result::Result<(), String> {
+    let manifest = writer.manifest();
+    let others: Vec<super::FrameEntry> = manifest
+        .frames
+        .iter()
+        .filter(|f| f.file != file)
+        .cloned()
+        .collect();
+    let raw_size = if manifest.image.encoding == super::camera::RAW_ENCODING {
+        others.first().and_then(|f| {
+            let bytes = std::fs::read(writer.dir().join(&f.file)).ok()?;
+            crate::raw::probe_raw(&bytes).ok().flatten()
+        })
+    } else {
+        None
+    };
+    let sha = crate::fsutil::sha256_hex(bytes);
+    super::frame_check::check(file, bytes, &sha, &manifest.image, &others, raw_size).map(|_| ())
 }
 
 /// The controller's state must be the planned one; for a light frame after the shot,

@@ -14,8 +14,8 @@ use crate::fsutil::{create_dir_all, record_owned, sha256_hex, write_atomic};
 use crate::plane::Frames;
 use crate::progress::Progress;
 use crate::raw::{
-    check_consistent, decode_frame, develop_frames, DecodeInfo, DecodedFrame, DevelopOptions,
-    Encoding, RawMeta, Resolution,
+    check_consistent, check_plausible, decode_frame, develop_frames, DecodeInfo, DecodedFrame,
+    DevelopOptions, Encoding, RawMeta, Resolution,
 };
 use crate::rig::Rig;
 
@@ -344,6 +344,14 @@ impl CaptureSet {
                 .collect();
             check_consistent(&metas).map_err(|m| Error::capture_set(&self.dir, m))?;
             self.check_camera_settings(&metas)?;
+            let lights: Vec<(String, &DecodedFrame)> = jobs
+                .iter()
+                .zip(&decoded)
+                .skip(dark.is_some() as usize)
+                .map(|(e, d)| (e.file.clone(), d))
+                .collect();
+            let dark_frame = dark.map(|_| &decoded[0]);
+            check_plausible(&lights, dark_frame).map_err(|m| Error::capture_set(&self.dir, m))?;
         }
         let mut decoded = decoded.into_iter();
         let dark_frame = dark.and_then(|_| decoded.next());

@@ -471,6 +471,15 @@ fn walk(
                 led.moved_mm
             );
         }
+        let problems = fit.problems();
+        if !problems.is_empty() {
+            anyhow::bail!(
+                "the white-sheet LED fit was rejected ({}); nothing was kept: check the rig's \
+                 hand-measured LED positions and that each photograph is lit by its own LED, \
+                 then run the same command again",
+                problems.join("; ")
+            );
+        }
     }
     if wiz.state.step == Step::Flatness {
         if !go_on(

@@ -335,9 +335,23 @@ pub fn whitesheet(args: &WhitesheetArgs, json: bool, bars: &Bars) -> anyhow::Res
     }
     if json {
         print_json(&result);
-        return Ok(());
+    } else {
+        print_sheet(&result, &rig);
     }
-    print_sheet(&result, &rig);
+    let problems = result.lights.problems();
+    if !problems.is_empty() {
+        let kept = match &args.out {
+            Some(out) => format!(
+                "; {} records it as rejected, and `calibrate bundle` refuses it",
+                out.display()
+            ),
+            None => String::new(),
+        };
+        anyhow::bail!(
+            "the white-sheet LED fit was rejected ({}){kept}",
+            problems.join("; ")
+        );
+    }
     Ok(())
 }
 
@@ -367,6 +381,9 @@ fn print_sheet(r: &WhiteSheetStep, start: &psscan::rig::Rig) {
             "  NOT converged after {} iterations: check the rig's hand measurements and that each photograph is lit by its own LED",
             r.lights.iterations.len()
         );
+    }
+    for reason in &r.lights.rejected_because {
+        println!("  REJECTED: {reason}");
     }
     for (k, led) in r.lights.leds.iter().enumerate() {
         let p = led.position_m;

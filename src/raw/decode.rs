@@ -114,6 +114,36 @@ pub fn decode_raw(bytes: Vec<u8>, path: &Path) -> Result<DecodedRaw> {
     }
 }
 
+/// Whether `bytes` are a camera RAW file rawler can read, and the raw image size its header
+/// declares where the container says (`None` where it does not, e.g. CR3). Only the
+/// container is parsed (after the same structural guard as [`decode_raw`]); no pixel is
+/// decoded, so this is cheap enough to run on every frame as it is captured.
+pub fn probe_raw(bytes: &[u8]) -> std::result::Result<Option<(usize, usize)>, String> {
+    super::guard::check_structure(bytes).map_err(|m| format!("is corrupt: {m}"))?;
+    let source = RawSource::new_from_shared_vec(Arc::new(bytes.to_vec()));
+    DECODING.with(|d| d.set(true));
+    let probed = catch_unwind(AssertUnwindSafe(|| {
+        let decoder = rawler::get_decoder(&source)
+            .map_err(|e| format!("is not a camera RAW file psscan can read: {e}"))?;
+        let dims = match decoder.ifd(WellKnownIFD::Raw) {
+            Ok(Some(ifd)) => {
+                let dim = |tag| ifd.get_entry(tag).map(|e| e.force_usize(0));
+                match (
+                    dim(TiffCommonTag::ImageWidth),
+                    dim(TiffCommonTag::ImageLength),
+                ) {
+                    (Some(w), Some(h)) => Some((w, h)),
+                    _ => None,
+                }
+            }
+            _ => None,
+        };
+        Ok(dims)
+    }));
+    DECODING.with(|d| d.set(false));
+    probed.unwrap_or_else(|_| Err("the RAW decoder failed on this file's header".into()))
+}
+
 fn decode_source(source: &RawSource) -> std::result::Result<(RawImage, RawMeta), String> {
     let reject = |e: rawler::RawlerError| format!("cannot decode as a camera RAW file: {e}");
     let decoder = rawler::get_decoder(source).map_err(reject)?;

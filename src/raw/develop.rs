@@ -212,6 +212,88 @@ pub fn check_consistent(frames: &[(String, &RawMeta)]) -> std::result::Result<()
     }
 }
 
+/// How many read-noise standard deviations below the black level a sample must lie to be
+/// impossible for a working sensor: a Gaussian reaches -6 sigma once in 1e9 samples.
+const BELOW_BLACK_SIGMAS: f32 = 6.0;
+/// The share of a frame's samples that may lie that far below black (hot and cold pixels,
+/// non-Gaussian read-noise tails) before the frame is called garbage: 1e5 times the Gaussian
+/// expectation, and at least this many samples in absolute terms.
+const BELOW_BLACK_SHARE: f64 = 1e-4;
+const BELOW_BLACK_MIN_SAMPLES: usize = 16;
+
+/// Catches RAW frames that decoded to garbage (a damaged compressed stream decodes into
+/// samples wandering over the whole range): against the all-off frame's read noise, a light
+/// frame may not hold samples far below the black level (the shutter only adds light), and it
+/// may not be mostly clipped at the white level. The read noise is the dark frame's own
+/// spread (its median absolute deviation, so a few hot pixels do not inflate it); without a
+/// dark frame only the clipping test runs. `frames` pairs file names with decoded frames.
+pub fn check_plausible(
+    frames: &[(String, &DecodedFrame)],
+    dark: Option<&DecodedFrame>,
+) -> std::result::Result<(), String> {
+    let dark_level = dark.and_then(|d| match &d.data {
+        FrameData::Mosaic(m) => Some(median_and_sigma(&m.values)),
+        FrameData::Rgb(_) => None,
+    });
+    let mut problems = Vec::new();
+    for (name, frame) in frames {
+        let FrameData::Mosaic(m) = &frame.data else {
+            continue;
+        };
+        let n = m.values.len().max(1);
+        let clipped = m.saturated.iter().filter(|&&s| s).count();
+        if clipped * 2 > n {
+            problems.push(format!(
+                "{name}: {:.0} % of its samples are clipped at the white level",
+                100.0 * clipped as f64 / n as f64
+            ));
+            continue;
+        }
+        if let Some((median, sigma)) = dark_level.filter(|(_, s)| *s > 0.0) {
+            let floor = median - BELOW_BLACK_SIGMAS * sigma;
+            let below = m.values.iter().filter(|&&v| v < floor).count();
+            let allowed = BELOW_BLACK_MIN_SAMPLES.max((BELOW_BLACK_SHARE * n as f64) as usize);
+            if below > allowed {
+                problems.push(format!(
+                    "{name}: {below} of its {n} samples lie more than {BELOW_BLACK_SIGMAS} \
+                     times the dark frame's read noise below its level, which no \
+                     exposure gives"
+                ));
+            }
+        }
+    }
+    if problems.is_empty() {
+        Ok(())
+    } else {
+        Err(format!(
+            "frames that decode to garbage (a damaged file whose checksum was updated, or a \
+             fault in the camera): {}; re-shoot them",
+            problems.join("; ")
+        ))
+    }
+}
+
+/// The median of `values` and the standard deviation of Gaussian noise about it, from the
+/// median absolute deviation.
+fn median_and_sigma(values: &[f32]) -> (f32, f32) {
+    if values.is_empty() {
+        return (0.0, 0.0);
+    }
+    let mut v: Vec<f32> = values.iter().copied().filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return (0.0, 0.0);
+    }
+    let mid = v.len() / 2;
+    let median = *v.select_nth_unstable_by(mid, f32::total_cmp).1;
+    for x in &mut v {
+        *x = (*x - median).abs();
+    }
+    (
+        median,
+        1.4826 * *v.select_nth_unstable_by(mid, f32::total_cmp).1,
+    )
+}
+
 /// How the frames of a solve were decoded and prepared, for the report.
 #[derive(Clone, Debug, Serialize)]
 pub struct DecodeInfo {

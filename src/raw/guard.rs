@@ -170,6 +170,7 @@ impl<'a> Tiff<'a> {
             ));
         }
         let mut dims = [None::<usize>; 2];
+        let mut layout = Layout::default();
         for e in 0..count {
             let entry = pos + 2 + 12 * e;
             let tag = self.u16_at(entry).ok_or("IFD entry cut short")?;
@@ -195,6 +196,7 @@ impl<'a> Tiff<'a> {
                 };
                 dims[(tag == IMAGE_LENGTH) as usize] = v;
             }
+            layout.note(self, tag, typ, n, value_at);
             if SUB_IFD_TAGS.contains(&tag) && (typ == 4 || typ == 13) {
                 for k in 0..n.min(64) {
                     let Some(sub) = self.u32_at(value_at + 4 * k) else {
@@ -215,8 +217,73 @@ impl<'a> Tiff<'a> {
                     "the IFD at byte {pos} announces a {w}x{h} image, larger than any camera's"
                 ));
             }
+            self.check_ljpeg_segments(&layout, (w, h))
+                .map_err(|m| format!("the image of the IFD at byte {pos}: {m}"))?;
         }
         Ok(self.u32_at(end).unwrap_or(0) as usize)
+    }
+
+    /// Values of a SHORT or LONG entry (at most `MAX_SEGMENTS`).
+    fn values(&self, typ: u16, n: usize, at: usize) -> Vec<usize> {
+        (0..n.min(MAX_SEGMENTS))
+            .map_while(|k| match typ {
+                3 => self.u16_at(at + 2 * k).map(usize::from),
+                4 => self.u32_at(at + 4 * k).map(|v| v as usize),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Lossless-JPEG images (compression 7, as DNG stores them): each tile's or strip's
+    /// stream must lie inside the file and its SOF3 header must describe exactly as many
+    /// samples as the tile or strip holds. The decoder sizes its work from the SOF, so a
+    /// damaged one would otherwise cost time and memory the container never declared.
+    fn check_ljpeg_segments(&self, l: &Layout, (w, h): (usize, usize)) -> Result<(), String> {
+        if l.compression != Some(7) {
+            return Ok(());
+        }
+        let spp = l.samples_per_pixel.unwrap_or(1).max(1);
+        let (offsets, counts, sizes): (&[usize], &[usize], Vec<(usize, usize)>) =
+            match (l.tile_w, l.tile_h) {
+                (Some(tw), Some(th)) if tw > 0 && th > 0 => {
+                    let n = w.div_ceil(tw) * h.div_ceil(th);
+                    (&l.tile_offsets, &l.tile_counts, vec![(tw, th); n])
+                }
+                _ => {
+                    let rows = l.rows_per_strip.unwrap_or(h).clamp(1, h.max(1));
+                    let sizes = (0..h.div_ceil(rows))
+                        .map(|k| (w, rows.min(h - k * rows)))
+                        .collect();
+                    (&l.strip_offsets, &l.strip_counts, sizes)
+                }
+            };
+        if offsets.len() != sizes.len() || counts.len() != sizes.len() {
+            return Err(format!(
+                "{} compressed segments listed ({} byte counts) where a {w}x{h} image holds {}",
+                offsets.len(),
+                counts.len(),
+                sizes.len()
+            ));
+        }
+        for (k, ((&at, &count), (sw, sh))) in offsets.iter().zip(counts).zip(sizes).enumerate() {
+            let at = self.base.saturating_add(at);
+            let Some(stream) = self.data.get(at..at.saturating_add(count)) else {
+                return Err(format!(
+                    "compressed segment {k} lies past the end of the file"
+                ));
+            };
+            let (lines, width, components) = ljpeg_frame(stream)
+                .map_err(|m| format!("compressed segment {k} at byte {at}: {m}"))?;
+            let samples = lines * width * components;
+            if samples != sw * sh * spp {
+                return Err(format!(
+                    "compressed segment {k} at byte {at} declares {lines} lines of {width} x \
+                     {components} samples, the container a {sw}x{sh} segment of {spp} sample(s) \
+                     per pixel: the compressed stream is damaged"
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// The maker notes rawler parses as IFDs.
@@ -264,6 +331,73 @@ impl<'a> Tiff<'a> {
             self.walk_ifd(at - self.base, depth, visited)?;
         }
         Ok(())
+    }
+}
+
+/// More tiles or strips than this in one image is not a camera's file.
+const MAX_SEGMENTS: usize = 1 << 16;
+
+/// How an IFD's image is stored, as far as the lossless-JPEG check needs.
+#[derive(Default)]
+struct Layout {
+    compression: Option<usize>,
+    samples_per_pixel: Option<usize>,
+    tile_w: Option<usize>,
+    tile_h: Option<usize>,
+    rows_per_strip: Option<usize>,
+    tile_offsets: Vec<usize>,
+    tile_counts: Vec<usize>,
+    strip_offsets: Vec<usize>,
+    strip_counts: Vec<usize>,
+}
+
+impl Layout {
+    fn note(&mut self, tiff: &Tiff, tag: u16, typ: u16, n: usize, at: usize) {
+        let first = || tiff.values(typ, 1, at).first().copied();
+        match tag {
+            259 => self.compression = first(),
+            277 => self.samples_per_pixel = first(),
+            278 => self.rows_per_strip = first(),
+            322 => self.tile_w = first(),
+            323 => self.tile_h = first(),
+            273 => self.strip_offsets = tiff.values(typ, n, at),
+            279 => self.strip_counts = tiff.values(typ, n, at),
+            324 => self.tile_offsets = tiff.values(typ, n, at),
+            325 => self.tile_counts = tiff.values(typ, n, at),
+            _ => {}
+        }
+    }
+}
+
+/// Lines, samples per line and components of a lossless-JPEG stream's SOF3 header: the
+/// markers from SOI up to the frame header, each inside the stream.
+fn ljpeg_frame(stream: &[u8]) -> Result<(usize, usize, usize), String> {
+    if !stream.starts_with(&[0xFF, 0xD8]) {
+        return Err("does not start with a JPEG SOI marker".into());
+    }
+    let mut pos = 2;
+    loop {
+        let marker = stream.get(pos..pos + 4).ok_or("no SOF3 frame header")?;
+        if marker[0] != 0xFF {
+            return Err(format!("byte {pos} is not a JPEG marker"));
+        }
+        let len = u16::from_be_bytes([marker[2], marker[3]]) as usize;
+        match marker[1] {
+            0xC3 => {
+                let f = stream
+                    .get(pos + 4..pos + 10)
+                    .ok_or("SOF3 header cut short")?;
+                let lines = u16::from_be_bytes([f[1], f[2]]) as usize;
+                let width = u16::from_be_bytes([f[3], f[4]]) as usize;
+                return Ok((lines, width, f[5] as usize));
+            }
+            0xC4 | 0xDD | 0xFE | 0xE0..=0xEF if len >= 2 => pos += 2 + len,
+            other => {
+                return Err(format!(
+                    "marker 0xFF{other:02X} before the SOF3 frame header"
+                ))
+            }
+        }
     }
 }
 
