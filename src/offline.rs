@@ -23,6 +23,7 @@ use crate::pipeline::{self, SolveJob};
 use crate::progress::Progress;
 use crate::raw::{DecodeInfo, Resolution};
 use crate::solve::{self, LightSource, NoiseModel, SolveInput, SolveResult};
+use crate::timing::StageClock;
 
 /// What kind of set a folder holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -113,7 +114,6 @@ fn solve_diligent_into(
     progress: &dyn Progress,
     buffers: &mut Option<SolveResult>,
 ) -> Result<Report> {
-    let total = Instant::now();
     if !job.region.is_full() {
         return Err(Error::Unsupported(format!(
             "{}: --roi, --bin and --background apply to psscan capture sets, not DiLiGenT sets",
@@ -127,15 +127,15 @@ fn solve_diligent_into(
             dir.display()
         )));
     }
+    let mut clock = StageClock::start();
     let stage = StagedDir::create(out, job.force, maps::REPORT_FILE)?;
-    let mut timings = BTreeMap::new();
-    let start = Instant::now();
-    let set = DiligentSet::open(dir)?;
-    let frames = set.load_frames(progress)?;
-    let mask = set.mask(frames.width, frames.height)?;
-    timings.insert("decode".into(), start.elapsed().as_secs_f64());
+    let (set, frames, mask) = clock.time("decode", || -> Result<_> {
+        let set = DiligentSet::open(dir)?;
+        let frames = set.load_frames(progress)?;
+        let mask = set.mask(frames.width, frames.height)?;
+        Ok((set, frames, mask))
+    })?;
 
-    let start = Instant::now();
     let full_scale = diligent::LEVELS.white - diligent::LEVELS.black;
     let input = SolveInput {
         frames: &frames,
@@ -151,12 +151,17 @@ fn solve_diligent_into(
         exposure: 1.0,
         mask: mask.as_ref(),
     };
-    let result = solve::solve_reusing(&input, &job.options, progress, buffers.take())?;
-    timings.insert("solve".into(), start.elapsed().as_secs_f64());
-
-    let start = Instant::now();
-    let outputs = maps::write_maps(&result, stage.path(), &job.maps)?;
-    timings.insert("write".into(), start.elapsed().as_secs_f64());
+    let result = clock.time("solve", || {
+        solve::solve_reusing(&input, &job.options, progress, buffers.take())
+    })?;
+    let outputs = clock.time_shared(&maps::MAP_STAGES, "write maps", |busy| {
+        maps::write_maps_timed(&result, stage.path(), &job.maps, busy)
+    })?;
+    let write_s: f64 = maps::MAP_STAGES
+        .iter()
+        .map(|s| clock.seconds(s))
+        .sum::<f64>()
+        + clock.seconds("write maps");
     let rig = format!("DiLiGenT layout, {} distant lights", set.files.len());
     let mut report = Report::new(
         dir,
@@ -181,13 +186,20 @@ fn solve_diligent_into(
                        model; pixels are not resampled"
             .into(),
     });
-    if let Some(truth) = set.normal_truth(frames.width, frames.height)? {
+    let truth = clock.time("report", || set.normal_truth(frames.width, frames.height))?;
+    if let Some(truth) = truth {
         let everywhere = crate::plane::Mask::new(frames.width, frames.height, true);
         let mask = mask.as_ref().unwrap_or(&everywhere);
-        report.normal_truth = Some(eval::compare_normals_over_mask(&result, &truth, mask));
+        report.normal_truth = Some(clock.time("report", || {
+            eval::compare_normals_over_mask(&result, &truth, mask)
+        }));
     }
-    timings.insert("total".into(), total.elapsed().as_secs_f64());
-    report.timings_s = timings;
+    report.timings_s = BTreeMap::from([
+        ("decode".to_string(), clock.seconds("decode")),
+        ("solve".to_string(), clock.seconds("solve")),
+        ("write".to_string(), write_s),
+    ]);
+    report.set_stages(&clock);
     report.write(&stage.path().join(maps::REPORT_FILE))?;
     stage.commit(job.force, maps::REPORT_FILE)?;
     *buffers = Some(result);

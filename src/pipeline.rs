@@ -24,6 +24,7 @@ use crate::raw::{
 use crate::region::{self, Background, RegionInfo, Roi};
 use crate::rig::Rig;
 use crate::solve::{self, NoiseModel, SolveInput, SolveOptions};
+use crate::timing::StageClock;
 use crate::synth::{expose, expose_mosaic, FrameEncoding, Scene, SynthSpec};
 
 pub const TRUTH_DIR: &str = "truth";
@@ -604,23 +605,23 @@ pub fn solve_capture_set_reusing(
     progress: &dyn Progress,
     buffers: &mut Option<solve::SolveResult>,
 ) -> Result<Report> {
-    let total = Instant::now();
+    let mut clock = StageClock::start();
     let stage = StagedDir::create(out, job.force, maps::REPORT_FILE)?;
-    let mut timings = BTreeMap::new();
 
-    let start = Instant::now();
-    let mut set = CaptureSet::open(dir, job.rig.clone())?;
-    let calibration = resolve_calibration(&set, job)?;
-    if let Some(bundle) = &calibration {
-        set.rig = bundle.rig.clone();
-    }
-    let loaded = set.load_frames_with(&job.develop, progress)?;
+    let (set, calibration) = clock.time("open set", || -> Result<_> {
+        let mut set = CaptureSet::open(dir, job.rig.clone())?;
+        let calibration = resolve_calibration(&set, job)?;
+        if let Some(bundle) = &calibration {
+            set.rig = bundle.rig.clone();
+        }
+        Ok((set, calibration))
+    })?;
+    let loaded = set.load_frames_timed(&job.develop, progress, &mut clock)?;
     let frames = loaded.frames;
     let mut decode = loaded.info;
     decode.undistortion = undistortion_note(&set.rig);
-    timings.insert("decode".into(), start.elapsed().as_secs_f64());
+    let decode_s = clock.elapsed();
 
-    let start = Instant::now();
     let lights = match calibration.as_ref().and_then(|b| b.gains.as_deref()) {
         Some(gains) => solve::LightSource::Calibrated {
             rig: &set.rig,
@@ -628,10 +629,10 @@ pub fn solve_capture_set_reusing(
         },
         None => solve::LightSource::Rig(&set.rig),
     };
-    let noise = decoded_noise_model(&set.rig, &decode);
-    let (frames, mask, noise, region_info) = select_region(frames, &lights, noise, &job.region)?;
-    timings.insert("region".into(), start.elapsed().as_secs_f64());
-    let start = Instant::now();
+    let noise = clock.time("noise model", || decoded_noise_model(&set.rig, &decode));
+    let (frames, mask, noise, region_info) = clock.time("region", || {
+        select_region(frames, &lights, noise, &job.region)
+    })?;
     let input = SolveInput {
         frames: &frames,
         lights,
@@ -639,37 +640,52 @@ pub fn solve_capture_set_reusing(
         exposure: set.manifest.image.exposure,
         mask: mask.as_ref(),
     };
-    let result = solve::solve_reusing(&input, &job.options, progress, buffers.take())?;
-    timings.insert("solve".into(), start.elapsed().as_secs_f64());
-    drop(frames);
+    let result = clock.time("solve", || {
+        solve::solve_reusing(&input, &job.options, progress, buffers.take())
+    })?;
+    clock.time("free frames", || drop(frames));
 
-    let start = Instant::now();
     let map_options = MapOptions {
         display_matrix: job.maps.display_matrix.or(decode.camera_to_srgb),
         ..job.maps.clone()
     };
-    let outputs = maps::write_maps(&result, stage.path(), &map_options)?;
-    timings.insert("write".into(), start.elapsed().as_secs_f64());
+    let write_start = clock.elapsed();
+    let outputs = clock.time_shared(&maps::MAP_STAGES, "write maps", |busy| {
+        maps::write_maps_timed(&result, stage.path(), &map_options, busy)
+    })?;
+    let write_s = clock.elapsed() - write_start;
 
-    let outputs = relocate(outputs, out);
-    let mut report = Report::new(dir, &set.rig.name, &result, &job.options, outputs);
-    report.calibration = calibration.as_ref().map(|b| b.citation());
-    report.calibration_cited_by_set = set.manifest.calibration.clone().filter(|c| {
-        report
-            .calibration
-            .as_ref()
-            .map_or(true, |used| (&used.id, &used.sha256) != (&c.id, &c.sha256))
-    });
-    if let Some(truth) = truth_for(&set, &decode)? {
-        let (normal, albedo) = region_truth(truth, &job.region)?;
-        report.truth = Some(eval::compare(&result, &normal, &albedo));
-    }
-    if !job.region.is_full() {
-        report.region = Some(region_info);
-    }
+    let report_start = clock.elapsed();
+    let mut report = clock.time("report", || -> Result<Report> {
+        let outputs = relocate(outputs, out);
+        let mut report = Report::new(dir, &set.rig.name, &result, &job.options, outputs);
+        report.calibration = calibration.as_ref().map(|b| b.citation());
+        report.calibration_cited_by_set = set.manifest.calibration.clone().filter(|c| {
+            report
+                .calibration
+                .as_ref()
+                .map_or(true, |used| (&used.id, &used.sha256) != (&c.id, &c.sha256))
+        });
+        if let Some(truth) = truth_for(&set, &decode)? {
+            let (normal, albedo) = region_truth(truth, &job.region)?;
+            report.truth = Some(eval::compare(&result, &normal, &albedo));
+        }
+        if !job.region.is_full() {
+            report.region = Some(region_info);
+        }
+        Ok(report)
+    })?;
     report.decode = Some(decode);
-    timings.insert("total".into(), total.elapsed().as_secs_f64());
-    report.timings_s = timings;
+    let report_s = clock.elapsed() - report_start;
+    report.set_stages(&clock);
+    let total = report.total_s();
+    report.timings_s = BTreeMap::from([
+        ("decode".to_string(), decode_s),
+        ("solve".to_string(), clock.seconds("solve")),
+        ("write".to_string(), write_s),
+        ("report".to_string(), report_s),
+        ("total".to_string(), total),
+    ]);
     report.write(&stage.path().join(maps::REPORT_FILE))?;
     stage.commit(job.force, maps::REPORT_FILE)?;
     *buffers = Some(result);

@@ -158,7 +158,30 @@ pub struct SolveOptions {
     pub streaming_kernel: bool,
 }
 
+/// The tile tolerance of the default kernel, degrees: light coefficients are shared across
+/// tiles only where that moves no normal by more than this.
+pub const DEFAULT_TILE_TOLERANCE_DEG: f64 = 0.01;
+
+/// How far the default kernel's least-squares normals may lie from the exact kernel's,
+/// degrees: the tile tolerance, plus single-precision round-off (about 1e-4 degrees at the
+/// condition numbers `max_condition` lets through; see `tests_fast`).
+pub const DEFAULT_KERNEL_TOLERANCE_DEG: f64 = DEFAULT_TILE_TOLERANCE_DEG + 2e-4;
+
 impl SolveOptions {
+    /// These options with the default kernel of `psscan solve`: the streaming f32 kernel with
+    /// tiled coefficients ([`DEFAULT_TILE_TOLERANCE_DEG`]), whose normals lie within
+    /// [`DEFAULT_KERNEL_TOLERANCE_DEG`] of the exact kernel's, wherever the estimator and method
+    /// allow it (the adaptive estimator sends the pixels its screen flags to the exact kernel).
+    /// The robust estimator and the SVD method keep the exact kernel, which `--precision f64`
+    /// also asks for.
+    pub fn with_default_kernel(mut self) -> Self {
+        if self.estimator != Estimator::Robust && self.method != Method::Svd {
+            self.precision = Precision::F32;
+            self.tile_tolerance_deg = Some(DEFAULT_TILE_TOLERANCE_DEG);
+        }
+        self
+    }
+
     /// Whether the streaming kernel solves the pixels (the least-squares and adaptive
     /// estimators; the adaptive one sends the pixels its screen flags to the exact kernel).
     pub fn streaming(&self) -> bool {
