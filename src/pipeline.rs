@@ -62,6 +62,9 @@ fn synthetic_camera(encoding: FrameEncoding) -> (CameraSettings, RawMeta) {
     (settings, meta)
 }
 
+/// The stage of reading a synthetic set's ground truth.
+const TRUTH_READ_STAGE: &str = "read truth";
+
 /// What `write_synthetic_set` produced.
 #[derive(Clone, Debug, Serialize)]
 pub struct SynthOutcome {
@@ -339,7 +342,8 @@ pub fn read_truth(set: &CaptureSet) -> Result<Option<([Plane; 3], [Plane; 3])>> 
             planes.next().expect("three channels")
         }))
     };
-    Ok(Some((read3("normal.exr")?, read3("albedo.exr")?)))
+    let (normal, albedo) = rayon::join(|| read3("normal.exr"), || read3("albedo.exr"));
+    Ok(Some((normal?, albedo?)))
 }
 
 /// How to solve a capture set and what to write.
@@ -649,14 +653,30 @@ pub fn solve_capture_set_reusing(
         display_matrix: job.maps.display_matrix.or(decode.camera_to_srgb),
         ..job.maps.clone()
     };
+    // The ground truth (synthetic sets) is read while the maps are written: reading EXRs
+    // and writing them share the cores better than either alone.
     let write_start = clock.elapsed();
-    let outputs = clock.time_shared(&maps::MAP_STAGES, "write maps", |busy| {
-        maps::write_maps_timed(&result, stage.path(), &map_options, busy)
-    })?;
+    let mut stages = maps::MAP_STAGES.to_vec();
+    stages.push(TRUTH_READ_STAGE);
+    let (outputs, truth) = clock.time_shared(&stages, "write maps", |busy| {
+        rayon::join(
+            || maps::write_maps_timed(&result, stage.path(), &map_options, busy),
+            || busy.time(TRUTH_READ_STAGE, || truth_for(&set, &decode)),
+        )
+    });
+    let outputs = outputs?;
+    let truth = truth?;
     let write_s = clock.elapsed() - write_start;
 
     let report_start = clock.elapsed();
-    let mut report = clock.time("report", || -> Result<Report> {
+    let truth = match truth {
+        Some(truth) => Some(clock.time("compare with truth", || -> Result<_> {
+            let (normal, albedo) = region_truth(truth, &job.region)?;
+            Ok(eval::compare(&result, &normal, &albedo))
+        })?),
+        None => None,
+    };
+    let mut report = clock.time("report", || {
         let outputs = relocate(outputs, out);
         let mut report = Report::new(dir, &set.rig.name, &result, &job.options, outputs);
         report.calibration = calibration.as_ref().map(|b| b.citation());
@@ -666,15 +686,12 @@ pub fn solve_capture_set_reusing(
                 .as_ref()
                 .map_or(true, |used| (&used.id, &used.sha256) != (&c.id, &c.sha256))
         });
-        if let Some(truth) = truth_for(&set, &decode)? {
-            let (normal, albedo) = region_truth(truth, &job.region)?;
-            report.truth = Some(eval::compare(&result, &normal, &albedo));
-        }
+        report.truth = truth;
         if !job.region.is_full() {
             report.region = Some(region_info);
         }
-        Ok(report)
-    })?;
+        report
+    });
     report.decode = Some(decode);
     let report_s = clock.elapsed() - report_start;
     report.set_stages(&clock);
