@@ -183,7 +183,11 @@ mod tests {
             sorted.sort_by(|a, b| a.total_cmp(b));
             let at = |q: f64| sorted[((n - 1) as f64 * q).round() as usize];
             let s = Stats::of(&mut v);
-            assert_eq!((s.median, s.p95, s.max), (at(0.5), at(0.95), sorted[n - 1]), "{n}");
+            assert_eq!(
+                (s.median, s.p95, s.max),
+                (at(0.5), at(0.95), sorted[n - 1]),
+                "{n}"
+            );
             let mean = sorted.iter().sum::<f64>() / n as f64;
             assert!((s.mean - mean).abs() <= 1e-12 * mean.abs().max(1.0), "{n}");
         }

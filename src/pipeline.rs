@@ -24,8 +24,8 @@ use crate::raw::{
 use crate::region::{self, Background, RegionInfo, Roi};
 use crate::rig::Rig;
 use crate::solve::{self, NoiseModel, SolveInput, SolveOptions};
-use crate::timing::StageClock;
 use crate::synth::{expose, expose_mosaic, FrameEncoding, Scene, SynthSpec};
+use crate::timing::StageClock;
 
 pub const TRUTH_DIR: &str = "truth";
 pub const SPEC_FILE: &str = "truth/spec.toml";

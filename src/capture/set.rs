@@ -18,8 +18,8 @@ use crate::raw::{
     check_consistent, decode_frame_timed, develop_frames_timed, DecodeInfo, DecodedFrame,
     DevelopOptions, Encoding, RawMeta, Resolution, DECODE_STAGES,
 };
-use crate::timing::{Busy, StageClock};
 use crate::rig::Rig;
+use crate::timing::{Busy, StageClock};
 
 pub const RIG_FILE: &str = "rig.toml";
 
@@ -388,15 +388,15 @@ impl CaptureSet {
         let decode_one = |entry: &&FrameEntry, busy: &Busy| -> Result<DecodedFrame> {
             let (path, bytes) = self.read_frame_bytes_timed(entry, busy)?;
             let frame = decode_frame_timed(bytes, &path, encoding, &image.levels, busy)?;
-                if frame.stored_size != (image.width, image.height) {
-                    return Err(Error::image(
-                        &path,
-                        format!(
-                            "is {}x{}, the manifest says {}x{}",
-                            frame.stored_size.0, frame.stored_size.1, image.width, image.height
-                        ),
-                    ));
-                }
+            if frame.stored_size != (image.width, image.height) {
+                return Err(Error::image(
+                    &path,
+                    format!(
+                        "is {}x{}, the manifest says {}x{}",
+                        frame.stored_size.0, frame.stored_size.1, image.width, image.height
+                    ),
+                ));
+            }
             progress.advance(1);
             Ok(frame)
         };

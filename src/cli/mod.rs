@@ -247,8 +247,8 @@ struct SolveFlags {
     #[arg(long)]
     no_dark: bool,
     /// Kernel precision. Default: the streaming f32 kernel with tiles of 0.01 degrees (its
-    /// normals within 0.0102 degrees of the exact kernel's) for the ls and adaptive
-    /// estimators, the exact kernel for robust and svd. f64 without --tile-tolerance: the
+    /// normals within 0.02 degrees plus single-precision round-off of the exact kernel's) for
+    /// the ls and adaptive estimators, the exact kernel for robust and svd. f64 without --tile-tolerance: the
     /// exact per-pixel kernel everywhere.
     #[arg(long, value_enum)]
     precision: Option<PrecisionArg>,
@@ -345,7 +345,7 @@ impl SolveFlags {
             ..SolveOptions::default()
         };
         // No kernel asked for: the default kernel (streaming f32 and tiles where the estimator
-        // allows it, within solve::DEFAULT_KERNEL_TOLERANCE_DEG of the exact kernel).
+        // allows it, within solve::default_kernel_tolerance_deg of the exact kernel).
         let options = if self.precision.is_none() && self.tile_tolerance.is_none() {
             options.with_default_kernel()
         } else {

@@ -142,7 +142,12 @@ pub fn write_maps_timed(
             Ok((file, path))
         })
         .collect::<Result<Vec<(MapFile, PathBuf)>>>()?;
-    let find = |f: MapFile| written.iter().find(|(k, _)| *k == f).map(|(_, p)| p.clone());
+    let find = |f: MapFile| {
+        written
+            .iter()
+            .find(|(k, _)| *k == f)
+            .map(|(_, p)| p.clone())
+    };
     Ok(WrittenMaps {
         normal_png: find(MapFile::NormalPng),
         normal_exr: find(MapFile::NormalExr),

@@ -9,8 +9,8 @@ use super::WrittenMaps;
 use crate::error::Result;
 use crate::eval::TruthComparison;
 use crate::fsutil::write_atomic;
-use crate::timing::{StageClock, StageTime};
 use crate::solve::{PixelFit, PixelStatus, SolveOptions, SolveResult};
+use crate::timing::{StageClock, StageTime};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct Report {

@@ -161,7 +161,12 @@ mod tests {
         let fast = encode_png16(path, w, h, data.clone(), PngCompression::Fast).unwrap();
         let best = encode_png16(path, w, h, data.clone(), PngCompression::Best).unwrap();
         assert_ne!(fast, best, "the flag must change the encoder's settings");
-        assert!(best.len() <= fast.len(), "best {} > fast {}", best.len(), fast.len());
+        assert!(
+            best.len() <= fast.len(),
+            "best {} > fast {}",
+            best.len(),
+            fast.len()
+        );
         for bytes in [&fast, &best] {
             let back = image::load_from_memory(bytes).unwrap().into_rgb16();
             assert_eq!(back.into_raw(), data);

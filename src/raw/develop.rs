@@ -92,7 +92,13 @@ pub fn decode_frame(
     encoding: Encoding,
     dn16_levels: &Levels,
 ) -> Result<DecodedFrame> {
-    decode_frame_timed(bytes, path, encoding, dn16_levels, &Busy::new(&DECODE_STAGES))
+    decode_frame_timed(
+        bytes,
+        path,
+        encoding,
+        dn16_levels,
+        &Busy::new(&DECODE_STAGES),
+    )
 }
 
 /// The stages [`decode_frame_timed`] records: the codec (rawler, or the PNG decoder) and the
@@ -195,8 +201,7 @@ pub fn develop_frames_timed(
                 return Err(Error::Invalid("a RAW dark frame in a dn16 set".into()));
             };
             clock.time(DARK_STAGE, || {
-                rgb.par_iter_mut()
-                    .try_for_each(|f| subtract_dark(f, &dark))
+                rgb.par_iter_mut().try_for_each(|f| subtract_dark(f, &dark))
             })?;
         }
         return Ok(rgb);
