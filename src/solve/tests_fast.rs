@@ -343,7 +343,8 @@ fn the_default_kernel_stays_within_its_stated_tolerance() {
         let default = exact_ls().with_default_kernel();
         assert_eq!(default.precision, Precision::F32);
         assert_eq!(default.tile_tolerance_deg, Some(DEFAULT_TILE_TOLERANCE_DEG));
-        let exact = run(&rig, &frames, &exact_ls(), None);
+        let exact_ls_result = run(&rig, &frames, &exact_ls(), None);
+        let exact = &exact_ls_result;
         let fast = run(&rig, &frames, &default, None);
         assert_eq!(fast.status, exact.status);
         for i in 0..fast.status.len() {
@@ -371,9 +372,12 @@ fn the_default_kernel_stays_within_its_stated_tolerance() {
             } else if fast.fit[i] != PixelFit::LeastSquares {
                 assert_eq!(fast.normal_at(i), exact.normal_at(i), "{kind:?} pixel {i}");
             } else {
-                let e = crate::eval::angle_deg(&fast.normal_at(i), &exact.normal_at(i));
-                let tolerance = default_kernel_tolerance_deg(exact.condition.data[i] as f64);
-                assert!(e <= tolerance, "{kind:?} pixel {i}: {e} deg");
+                // The fast least squares, or sent on and kept all lights in the exact kernel.
+                let ls = &exact_ls_result;
+                let e = crate::eval::angle_deg(&fast.normal_at(i), &ls.normal_at(i));
+                let tolerance = default_kernel_tolerance_deg(ls.condition.data[i] as f64);
+                let same = fast.normal_at(i) == exact.normal_at(i);
+                assert!(e <= tolerance || same, "{kind:?} pixel {i}: {e} deg");
             }
         }
         eprintln!(
