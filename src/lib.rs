@@ -29,5 +29,6 @@ pub mod region;
 pub mod rig;
 pub mod solve;
 pub mod synth;
+pub mod timing;
 
 pub use error::{Error, Result};

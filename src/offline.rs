@@ -23,6 +23,7 @@ use crate::pipeline::{self, SolveJob};
 use crate::progress::Progress;
 use crate::raw::{DecodeInfo, Resolution};
 use crate::solve::{self, LightSource, NoiseModel, SolveInput, SolveResult};
+use crate::timing::StageClock;
 
 /// What kind of set a folder holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -113,7 +114,6 @@ fn solve_diligent_into(
     progress: &dyn Progress,
     buffers: &mut Option<SolveResult>,
 ) -> Result<Report> {
-    let total = Instant::now();
     if !job.region.is_full() {
         return Err(Error::Unsupported(format!(
             "{}: --roi, --bin and --background apply to psscan capture sets, not DiLiGenT sets",
@@ -128,15 +128,15 @@ fn solve_diligent_into(
         )));
     }
     let inputs = job.input_paths(dir);
+    let mut clock = StageClock::start();
     let stage = StagedDir::create(out, job.force, &inputs)?;
-    let mut timings = BTreeMap::new();
-    let start = Instant::now();
-    let set = DiligentSet::open(dir)?;
-    let frames = set.load_frames(progress)?;
-    let mask = set.mask(frames.width, frames.height)?;
-    timings.insert("decode".into(), start.elapsed().as_secs_f64());
+    let (set, frames, mask) = clock.time("decode", || -> Result<_> {
+        let set = DiligentSet::open(dir)?;
+        let frames = set.load_frames(progress)?;
+        let mask = set.mask(frames.width, frames.height)?;
+        Ok((set, frames, mask))
+    })?;
 
-    let start = Instant::now();
     let full_scale = diligent::LEVELS.white - diligent::LEVELS.black;
     let input = SolveInput {
         frames: &frames,
@@ -152,15 +152,22 @@ fn solve_diligent_into(
         exposure: 1.0,
         mask: mask.as_ref(),
     };
-    let result = solve::solve_reusing(&input, &job.options, progress, buffers.take())?;
-    timings.insert("solve".into(), start.elapsed().as_secs_f64());
+    let result = clock.time("solve", || {
+        solve::solve_reusing(&input, &job.options, progress, buffers.take())
+    })?;
     if job.maps.report_html {
-        maps::html::write_frame_strip(&frames, stage.path())?;
+        clock.time("frame previews", || {
+            maps::html::write_frame_strip(&frames, stage.path())
+        })?;
     }
-
-    let start = Instant::now();
-    let outputs = maps::write_maps(&result, stage.path(), &job.maps)?;
-    timings.insert("write".into(), start.elapsed().as_secs_f64());
+    let outputs = clock.time_shared(&maps::MAP_STAGES, "write maps", |busy| {
+        maps::write_maps_timed(&result, stage.path(), &job.maps, busy)
+    })?;
+    let write_s: f64 = maps::MAP_STAGES
+        .iter()
+        .map(|s| clock.seconds(s))
+        .sum::<f64>()
+        + clock.seconds("write maps");
     let rig = format!("DiLiGenT layout, {} distant lights", set.files.len());
     let mut report = Report::new(
         dir,
@@ -196,18 +203,25 @@ fn solve_diligent_into(
                        model; pixels are not resampled"
             .into(),
     });
-    if let Some(truth) = set.normal_truth(frames.width, frames.height)? {
+    let truth = clock.time("report", || set.normal_truth(frames.width, frames.height))?;
+    if let Some(truth) = truth {
         let everywhere = crate::plane::Mask::new(frames.width, frames.height, true);
         let mask = mask.as_ref().unwrap_or(&everywhere);
-        report.normal_truth = Some(eval::compare_normals_over_mask(&result, &truth, mask));
+        report.normal_truth = Some(clock.time("report", || {
+            eval::compare_normals_over_mask(&result, &truth, mask)
+        }));
         let errors: Vec<f64> = (eval::normal_errors_deg(&result, &truth).into_iter())
             .zip(&mask.data)
             .filter_map(|(e, &inside)| e.filter(|_| inside))
             .collect();
         report.normal_error_histogram = Some(maps::report::Histogram::of_errors(&errors));
     }
-    timings.insert("total".into(), total.elapsed().as_secs_f64());
-    report.timings_s = timings;
+    report.timings_s = BTreeMap::from([
+        ("decode".to_string(), clock.seconds("decode")),
+        ("solve".to_string(), clock.seconds("solve")),
+        ("write".to_string(), write_s),
+    ]);
+    report.set_stages(&clock);
     report.write(&stage.path().join(maps::REPORT_FILE))?;
     if job.maps.report_html {
         maps::html::write_report_page(stage.path())?;

@@ -25,6 +25,7 @@ use crate::region::{self, Background, RegionInfo, Roi};
 use crate::rig::Rig;
 use crate::solve::{self, NoiseModel, SolveInput, SolveOptions};
 use crate::synth::{expose, expose_mosaic, FrameEncoding, Scene, SynthSpec};
+use crate::timing::StageClock;
 
 pub const TRUTH_DIR: &str = "truth";
 pub const SPEC_FILE: &str = "truth/spec.toml";
@@ -60,6 +61,9 @@ fn synthetic_camera(encoding: FrameEncoding) -> (CameraSettings, RawMeta) {
     };
     (settings, meta)
 }
+
+/// The stage of reading a synthetic set's ground truth.
+const TRUTH_READ_STAGE: &str = "read truth";
 
 /// What `write_synthetic_set` produced.
 #[derive(Clone, Debug, Serialize)]
@@ -372,7 +376,8 @@ pub fn read_truth(set: &CaptureSet) -> Result<Option<([Plane; 3], [Plane; 3])>> 
             planes.next().expect("three channels")
         }))
     };
-    Ok(Some((read3("normal.exr")?, read3("albedo.exr")?)))
+    let (normal, albedo) = rayon::join(|| read3("normal.exr"), || read3("albedo.exr"));
+    Ok(Some((normal?, albedo?)))
 }
 
 /// How to solve a capture set and what to write.
@@ -654,25 +659,25 @@ pub fn solve_capture_set_reusing(
     progress: &dyn Progress,
     buffers: &mut Option<solve::SolveResult>,
 ) -> Result<Report> {
-    let total = Instant::now();
     let inputs = job.input_paths(dir);
+    let mut clock = StageClock::start();
     let stage = StagedDir::create(out, job.force, &inputs)?;
-    let mut timings = BTreeMap::new();
 
-    let start = Instant::now();
-    let mut set = CaptureSet::open(dir, job.rig.clone())?;
-    let calibration = resolve_calibration(&set, job)?;
-    if let Some(bundle) = &calibration {
-        crate::fsutil::check_outside_inputs(out, &[&bundle.citation().path])?;
-        set.rig = bundle.rig.clone();
-    }
-    let loaded = set.load_frames_with(&job.develop, progress)?;
+    let (set, calibration) = clock.time("open set", || -> Result<_> {
+        let mut set = CaptureSet::open(dir, job.rig.clone())?;
+        let calibration = resolve_calibration(&set, job)?;
+        if let Some(bundle) = &calibration {
+            crate::fsutil::check_outside_inputs(out, &[&bundle.citation().path])?;
+            set.rig = bundle.rig.clone();
+        }
+        Ok((set, calibration))
+    })?;
+    let loaded = set.load_frames_timed(&job.develop, progress, &mut clock)?;
     let frames = loaded.frames;
     let mut decode = loaded.info;
     decode.undistortion = undistortion_note(&set.rig);
-    timings.insert("decode".into(), start.elapsed().as_secs_f64());
+    let decode_s = clock.elapsed();
 
-    let start = Instant::now();
     let lights = match calibration.as_ref().and_then(|b| b.gains.as_deref()) {
         Some(gains) => solve::LightSource::Calibrated {
             rig: &set.rig,
@@ -680,10 +685,10 @@ pub fn solve_capture_set_reusing(
         },
         None => solve::LightSource::Rig(&set.rig),
     };
-    let noise = decoded_noise_model(&set.rig, &decode);
-    let (frames, mask, noise, region_info) = select_region(frames, &lights, noise, &job.region)?;
-    timings.insert("region".into(), start.elapsed().as_secs_f64());
-    let start = Instant::now();
+    let noise = clock.time("noise model", || decoded_noise_model(&set.rig, &decode));
+    let (frames, mask, noise, region_info) = clock.time("region", || {
+        select_region(frames, &lights, noise, &job.region)
+    })?;
     let input = SolveInput {
         frames: &frames,
         lights,
@@ -691,49 +696,84 @@ pub fn solve_capture_set_reusing(
         exposure: set.manifest.image.exposure,
         mask: mask.as_ref(),
     };
-    let result = solve::solve_reusing(&input, &job.options, progress, buffers.take())?;
-    timings.insert("solve".into(), start.elapsed().as_secs_f64());
+    let result = clock.time("solve", || {
+        solve::solve_reusing(&input, &job.options, progress, buffers.take())
+    })?;
     if job.maps.report_html {
-        maps::html::write_frame_strip(&frames, stage.path())?;
+        clock.time("frame previews", || {
+            maps::html::write_frame_strip(&frames, stage.path())
+        })?;
     }
-    drop(frames);
+    clock.time("free frames", || drop(frames));
 
-    let start = Instant::now();
     let map_options = MapOptions {
         display_matrix: job.maps.display_matrix.or(decode.camera_to_srgb),
         ..job.maps.clone()
     };
-    let outputs = maps::write_maps(&result, stage.path(), &map_options)?;
-    timings.insert("write".into(), start.elapsed().as_secs_f64());
-
-    let outputs = relocate(outputs, out);
-    let mut report = Report::new(dir, &set.rig.name, &result, &job.options, outputs);
-    report.normal_convention = map_options.normal_convention;
-    report.maps = map_options;
-    report.lights = light_records(&set);
-    report.camera = serde_json::to_value(&set.manifest.camera).ok();
-    report.calibration = calibration.as_ref().map(|b| b.citation());
-    report.calibration_cited_by_set = set.manifest.calibration.clone().filter(|c| {
-        report
-            .calibration
-            .as_ref()
-            .map_or(true, |used| (&used.id, &used.sha256) != (&c.id, &c.sha256))
+    // The ground truth (synthetic sets) is read while the maps are written: reading EXRs
+    // and writing them share the cores better than either alone.
+    let write_start = clock.elapsed();
+    let mut stages = maps::MAP_STAGES.to_vec();
+    stages.push(TRUTH_READ_STAGE);
+    let (outputs, truth) = clock.time_shared(&stages, "write maps", |busy| {
+        rayon::join(
+            || maps::write_maps_timed(&result, stage.path(), &map_options, busy),
+            || busy.time(TRUTH_READ_STAGE, || truth_for(&set, &decode)),
+        )
     });
-    if let Some(truth) = truth_for(&set, &decode)? {
-        let (normal, albedo) = region_truth(truth, &job.region)?;
-        report.set_truth(eval::compare(&result, &normal, &albedo));
-        let errors: Vec<f64> = eval::normal_errors_deg(&result, &normal)
-            .into_iter()
-            .flatten()
-            .collect();
-        report.normal_error_histogram = Some(maps::report::Histogram::of_errors(&errors));
-    }
-    if !job.region.is_full() {
-        report.set_region(region_info);
-    }
+    let outputs = outputs?;
+    let truth = truth?;
+    let write_s = clock.elapsed() - write_start;
+
+    let report_start = clock.elapsed();
+    let truth = match truth {
+        Some(truth) => Some(clock.time("compare with truth", || -> Result<_> {
+            let (normal, albedo) = region_truth(truth, &job.region)?;
+            let errors: Vec<f64> = eval::normal_errors_deg(&result, &normal)
+                .into_iter()
+                .flatten()
+                .collect();
+            Ok((
+                eval::compare(&result, &normal, &albedo),
+                maps::report::Histogram::of_errors(&errors),
+            ))
+        })?),
+        None => None,
+    };
+    let mut report = clock.time("report", || {
+        let outputs = relocate(outputs, out);
+        let mut report = Report::new(dir, &set.rig.name, &result, &job.options, outputs);
+        report.normal_convention = map_options.normal_convention;
+        report.maps = map_options;
+        report.lights = light_records(&set);
+        report.camera = serde_json::to_value(&set.manifest.camera).ok();
+        report.calibration = calibration.as_ref().map(|b| b.citation());
+        report.calibration_cited_by_set = set.manifest.calibration.clone().filter(|c| {
+            report
+                .calibration
+                .as_ref()
+                .map_or(true, |used| (&used.id, &used.sha256) != (&c.id, &c.sha256))
+        });
+        if let Some((comparison, histogram)) = truth {
+            report.set_truth(comparison);
+            report.normal_error_histogram = Some(histogram);
+        }
+        if !job.region.is_full() {
+            report.set_region(region_info);
+        }
+        report
+    });
     report.decode = Some(decode);
-    timings.insert("total".into(), total.elapsed().as_secs_f64());
-    report.timings_s = timings;
+    let report_s = clock.elapsed() - report_start;
+    report.set_stages(&clock);
+    let total = report.total_s();
+    report.timings_s = BTreeMap::from([
+        ("decode".to_string(), decode_s),
+        ("solve".to_string(), clock.seconds("solve")),
+        ("write".to_string(), write_s),
+        ("report".to_string(), report_s),
+        ("total".to_string(), total),
+    ]);
     report.write(&stage.path().join(maps::REPORT_FILE))?;
     if job.maps.report_html {
         maps::html::write_report_page(stage.path())?;

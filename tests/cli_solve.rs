@@ -193,7 +193,7 @@ fn sheen_fit_halves_the_error_on_shadows_and_sheen() {
 #[test]
 fn precision_and_tiles_stay_within_their_tolerance() {
     let set = &sets().lambertian;
-    let (exact, exact_dir) = solve(set, &["--estimator", "ls"]);
+    let (exact, exact_dir) = solve(set, &["--estimator", "ls", "--precision", "f64"]);
     let exact_n = normals(exact_dir.path());
     let tolerance = 0.01;
     for estimator in ["ls", "adaptive"] {

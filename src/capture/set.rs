@@ -2,6 +2,7 @@
 //! there, and reading one back with every check a saved set needs before it is solved.
 
 use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
@@ -14,10 +15,12 @@ use crate::fsutil::{create_dir_all, record_owned, sha256_hex, write_atomic};
 use crate::plane::Frames;
 use crate::progress::Progress;
 use crate::raw::{
-    check_consistent, check_plausible, decode_frame, develop_frames, DecodeInfo, DecodedFrame,
-    DevelopOptions, Encoding, RawMeta, Resolution,
+    check_consistent, check_plausible, decode_frame, decode_frame_timed, develop_frames,
+    develop_frames_timed, DecodeInfo, DecodedFrame, DevelopOptions, Encoding, RawMeta,
+    Resolution, DECODE_STAGES,
 };
 use crate::rig::Rig;
+use crate::timing::{Busy, StageClock};
 
 pub const RIG_FILE: &str = "rig.toml";
 
@@ -164,6 +167,14 @@ pub struct DroppedFrame {
 /// Reads the file `name` of the set in `dir`: a plain file inside the folder, not a link and
 /// not reached through one.
 pub(crate) fn read_inside(dir: &Path, name: &str) -> Result<(PathBuf, Vec<u8>)> {
+    let path = checked_inside(dir, name)?;
+    let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
+    Ok((path, bytes))
+}
+
+/// The path of the file `name` of the set in `dir`, checked to be a plain file inside the
+/// folder, not a link and not reached through one.
+fn checked_inside(dir: &Path, name: &str) -> Result<PathBuf> {
     let path = dir.join(name);
     super::manifest::check_inside(name).map_err(|m| Error::image(&path, m))?;
     let meta = std::fs::symlink_metadata(&path).map_err(|e| Error::io(&path, e))?;
@@ -187,9 +198,49 @@ pub(crate) fn read_inside(dir: &Path, name: &str) -> Result<(PathBuf, Vec<u8>)> 
     if !meta.is_file() {
         return Err(Error::image(&path, "is not a plain file"));
     }
-    let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
-    Ok((path, bytes))
+    Ok(path)
 }
+
+/// Reads `path` whole, hashing each chunk as it arrives (a chunk is hashed while it is still in
+/// the CPU's cache, not in a second pass over the whole file); the read and the hash time go to `busy`'s `read` and `hash check`.
+fn read_and_hash(path: &Path, busy: &Busy) -> Result<(Vec<u8>, String)> {
+    use sha2::{Digest, Sha256};
+    use std::io::Read;
+    const CHUNK: usize = 1 << 20;
+    let start = Instant::now();
+    let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = file.metadata().map(|m| m.len() as usize).unwrap_or(0);
+    let mut bytes = Vec::with_capacity(len + 1);
+    let mut hasher = Sha256::new();
+    let mut hashing = Duration::ZERO;
+    loop {
+        let done = bytes.len();
+        let n = (&mut file)
+            .take(CHUNK as u64)
+            .read_to_end(&mut bytes)
+            .map_err(|e| Error::io(path, e))?;
+        if n == 0 {
+            break;
+        }
+        let t = Instant::now();
+        hasher.update(&bytes[done..]);
+        hashing += t.elapsed();
+    }
+    let t = Instant::now();
+    let digest: String = hasher
+        .finalize()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
+    hashing += t.elapsed();
+    busy.add(HASH_STAGE, hashing);
+    busy.add(READ_STAGE, start.elapsed().saturating_sub(hashing));
+    Ok((bytes, digest))
+}
+
+/// Stage names of loading a set's frames.
+pub const READ_STAGE: &str = "read";
+pub const HASH_STAGE: &str = "hash check";
 
 /// A set's light frames developed for a solve, and how they were made.
 pub struct LoadedFrames {
@@ -265,8 +316,17 @@ impl CaptureSet {
     /// Reads a frame's bytes, refusing links (of the file or of a folder on its way) and
     /// checking the recorded SHA-256.
     pub fn read_frame_bytes(&self, entry: &FrameEntry) -> Result<(PathBuf, Vec<u8>)> {
-        let (path, bytes) = read_inside(&self.dir, &entry.file)?;
-        let actual = sha256_hex(&bytes);
+        self.read_frame_bytes_timed(entry, &Busy::new(&[READ_STAGE, HASH_STAGE]))
+    }
+
+    /// [`Self::read_frame_bytes`], hashing while reading, the time of each going to `busy`.
+    fn read_frame_bytes_timed(
+        &self,
+        entry: &FrameEntry,
+        busy: &Busy,
+    ) -> Result<(PathBuf, Vec<u8>)> {
+        let path = checked_inside(&self.dir, &entry.file)?;
+        let (bytes, actual) = read_and_hash(&path, busy)?;
         if actual != entry.sha256 {
             return Err(Error::image(
                 &path,
@@ -296,6 +356,18 @@ impl CaptureSet {
         options: &DevelopOptions,
         progress: &dyn Progress,
     ) -> Result<LoadedFrames> {
+        self.load_frames_timed(options, progress, &mut StageClock::start())
+    }
+
+    /// [`Self::load_frames_with`], timing its stages on `clock`: read, hash check, decode and
+    /// linearize (interleaved over the frames, one frame per core), dark subtraction, and
+    /// demosaic or binning.
+    pub fn load_frames_timed(
+        &self,
+        options: &DevelopOptions,
+        progress: &dyn Progress,
+        clock: &mut StageClock,
+    ) -> Result<LoadedFrames> {
         let entries = self.light_entries()?;
         let image = &self.manifest.image;
         let encoding = Encoding::parse(&image.encoding).ok_or_else(|| {
@@ -317,24 +389,27 @@ impl CaptureSet {
         // Decode the dark frame with the lights (it is checked with them too).
         let jobs: Vec<&FrameEntry> = dark.into_iter().chain(entries.iter().copied()).collect();
         progress.begin("decode", jobs.len() as u64);
-        let decoded = jobs
-            .par_iter()
-            .map(|entry| {
-                let (path, bytes) = self.read_frame_bytes(entry)?;
-                let frame = decode_frame(bytes, &path, encoding, &image.levels)?;
-                if frame.stored_size != (image.width, image.height) {
-                    return Err(Error::image(
-                        &path,
-                        format!(
-                            "is {}x{}, the manifest says {}x{}",
-                            frame.stored_size.0, frame.stored_size.1, image.width, image.height
-                        ),
-                    ));
-                }
-                progress.advance(1);
-                Ok(frame)
-            })
-            .collect::<Result<Vec<DecodedFrame>>>()?;
+        let stages = [READ_STAGE, HASH_STAGE, DECODE_STAGES[0], DECODE_STAGES[1]];
+        let decode_one = |entry: &&FrameEntry, busy: &Busy| -> Result<DecodedFrame> {
+            let (path, bytes) = self.read_frame_bytes_timed(entry, busy)?;
+            let frame = decode_frame_timed(bytes, &path, encoding, &image.levels, busy)?;
+            if frame.stored_size != (image.width, image.height) {
+                return Err(Error::image(
+                    &path,
+                    format!(
+                        "is {}x{}, the manifest says {}x{}",
+                        frame.stored_size.0, frame.stored_size.1, image.width, image.height
+                    ),
+                ));
+            }
+            progress.advance(1);
+            Ok(frame)
+        };
+        let decoded = clock.time_shared(&stages, "load frames", |busy| {
+            jobs.par_iter()
+                .map(|entry| decode_one(entry, busy))
+                .collect::<Result<Vec<DecodedFrame>>>()
+        })?;
         progress.end();
         if encoding == Encoding::Raw {
             let metas: Vec<(String, &RawMeta)> = jobs
@@ -394,11 +469,12 @@ impl CaptureSet {
             .iter()
             .map(|led| std::array::from_fn(|c| led.color[c] * self.rig.sensor.channel_gain[c]))
             .collect();
-        let frames = develop_frames(
+        let frames = develop_frames_timed(
             lights,
             dark_frame.filter(|_| subtracted.is_some()),
             Some(&illuminants),
             options.resolution,
+            clock,
         )
         .map_err(|e| Error::capture_set(&self.dir, e.to_string()))?;
         let (width, height) = match encoding {

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use psscan::maps::{MapOptions, NormalConvention};
+use psscan::maps::{MapOptions, NormalConvention, PngCompression};
 use psscan::offline::{self, BatchOptions, BatchSummary};
 use psscan::pipeline::{self, CalibrationChoice, DemoSummary, RegionJob, SolveJob};
 use psscan::raw::{DevelopOptions, Resolution};
@@ -259,14 +259,22 @@ struct SolveFlags {
     /// Do not subtract the set's all-off (dark) frame.
     #[arg(long)]
     no_dark: bool,
-    /// Precision of the streaming kernel; f32 (or --tile-tolerance) selects it, f64 without
-    /// tiles keeps the exact per-pixel kernel.
-    #[arg(long, value_enum, default_value_t = PrecisionArg::F64)]
-    precision: PrecisionArg,
+    /// Kernel precision. Default: the streaming f32 kernel with tiles of 0.01 degrees (its
+    /// normals within 0.02 degrees plus single-precision round-off of the exact kernel's) for
+    /// the ls and adaptive estimators, the exact kernel for robust and svd. f64 without --tile-tolerance: the
+    /// exact per-pixel kernel everywhere.
+    #[arg(long, value_enum)]
+    precision: Option<PrecisionArg>,
     /// Share light coefficients across tiles where that moves normals by at most this many
-    /// degrees (streaming kernel; e.g. 0.01).
+    /// degrees (streaming kernel; default 0.01 unless --precision f64 is given).
     #[arg(long, value_name = "DEG", value_parser = values::positive, allow_negative_numbers = true)]
     tile_tolerance: Option<f64>,
+    /// PNG deflate effort: fast (default) or best (smaller files for archives, much slower).
+    #[arg(long, value_enum, default_value_t = PngCompressionArg::Fast)]
+    png_compression: PngCompressionArg,
+    /// Print where the wall time went, stage by stage (also in report.json, "stages").
+    #[arg(long)]
+    timings: bool,
     /// Solve the luminance alone: the normal map, with the luminance albedo in every channel.
     #[arg(long)]
     normal_only: bool,
@@ -280,6 +288,12 @@ struct SolveFlags {
     /// the frames (non-zero = sample); no work is done outside it.
     #[arg(long, default_value = "none", value_name = "none|auto|FILE")]
     background: String,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum PngCompressionArg {
+    Fast,
+    Best,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -310,39 +324,48 @@ enum LightModelArg {
 
 impl SolveFlags {
     fn job(&self) -> anyhow::Result<SolveJob> {
+        let options = SolveOptions {
+            method: match self.method {
+                MethodArg::Fast => Method::NormalEquations,
+                MethodArg::Svd => Method::Svd,
+            },
+            light_model: match self.light_model {
+                LightModelArg::Near => LightModel::Near,
+                LightModelArg::Distant => LightModel::Distant,
+            },
+            precision: match (self.precision, self.tile_tolerance) {
+                (Some(PrecisionArg::F64), _) => Precision::F64,
+                (Some(PrecisionArg::F32), _) | (None, Some(_)) => Precision::F32,
+                (None, None) => Precision::F64,
+            },
+            tile_tolerance_deg: self.tile_tolerance,
+            normal_only: self.normal_only,
+            estimator: self.estimator,
+            robust: RobustOptions {
+                sheen: self.sheen_fit.as_deref().map(|v| SheenModel {
+                    f0: [v[0]; 3],
+                    alpha: v[1],
+                    amplitude: v[2],
+                }),
+                relative_model_error: self.model_error,
+                ..RobustOptions::default()
+            },
+            ..SolveOptions::default()
+        };
+        // No kernel asked for: the default kernel (streaming f32 and tiles where the estimator
+        // allows it, within solve::default_kernel_tolerance_deg of the exact kernel).
+        let options = if self.precision.is_none() && self.tile_tolerance.is_none() {
+            options.with_default_kernel()
+        } else {
+            options
+        };
         Ok(SolveJob {
             region: RegionJob {
                 roi: self.roi,
                 bin: self.bin as usize,
                 background: Background::parse(&self.background),
             },
-            options: SolveOptions {
-                method: match self.method {
-                    MethodArg::Fast => Method::NormalEquations,
-                    MethodArg::Svd => Method::Svd,
-                },
-                light_model: match self.light_model {
-                    LightModelArg::Near => LightModel::Near,
-                    LightModelArg::Distant => LightModel::Distant,
-                },
-                precision: match self.precision {
-                    PrecisionArg::F64 => Precision::F64,
-                    PrecisionArg::F32 => Precision::F32,
-                },
-                tile_tolerance_deg: self.tile_tolerance,
-                normal_only: self.normal_only,
-                estimator: self.estimator,
-                robust: RobustOptions {
-                    sheen: self.sheen_fit.as_deref().map(|v| SheenModel {
-                        f0: [v[0]; 3],
-                        alpha: v[1],
-                        amplitude: v[2],
-                    }),
-                    relative_model_error: self.model_error,
-                    ..RobustOptions::default()
-                },
-                ..SolveOptions::default()
-            },
+            options,
             maps: MapOptions {
                 normal_convention: if self.directx {
                     NormalConvention::DirectX
@@ -354,6 +377,10 @@ impl SolveFlags {
                 // Set from the frames' own colour matrix when they are camera RAW files.
                 display_matrix: None,
                 report_html: !self.no_report_html,
+                png_compression: match self.png_compression {
+                    PngCompressionArg::Fast => PngCompression::Fast,
+                    PngCompressionArg::Best => PngCompression::Best,
+                },
             },
             rig: None,
             force: false,
@@ -373,6 +400,7 @@ impl SolveFlags {
 
 /// Runs the CLI; returns the process exit code.
 pub fn run() -> i32 {
+    PROCESS_START.get_or_init(std::time::Instant::now);
     quiet_closed_pipe_panics();
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,
@@ -668,6 +696,9 @@ fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
             print_json(&report);
         } else {
             print_solve(set, &args.out, &report);
+            if args.solve.timings {
+                print_stage_table(&report);
+            }
         }
         return Ok(());
     }
@@ -694,6 +725,25 @@ fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+/// The solve's stage table, and the whole process's wall time beside it.
+fn print_stage_table(report: &psscan::maps::Report) {
+    println!("  where the time went:");
+    print!(
+        "{}",
+        psscan::timing::format_table(&report.stages, report.total_s())
+    );
+    if let Some(started) = PROCESS_START.get() {
+        println!(
+            "  {:<24} {:>8.3} s (the process so far, its start and the report's write included)",
+            "process",
+            started.elapsed().as_secs_f64()
+        );
+    }
+}
+
+/// When `run` started: the process's wall time for `--timings`.
+static PROCESS_START: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
 
 fn print_batch(summary: &BatchSummary) {
     for o in &summary.sets {

@@ -10,15 +10,18 @@ pub mod write;
 
 use std::path::{Path, PathBuf};
 
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::error::{Error, Result};
 use crate::fsutil::create_dir_all;
 use crate::plane::Plane;
 use crate::solve::SolveResult;
+use crate::timing::Busy;
 
 pub use encode::NormalConvention;
 pub use report::Report;
+pub use write::PngCompression;
 
 /// Which maps to write and how.
 #[derive(Clone, Debug, Serialize)]
@@ -31,6 +34,8 @@ pub struct MapOptions {
     pub display_matrix: Option<[[f64; 3]; 3]>,
     /// Write `report.html` (and the frame previews it shows) beside the maps.
     pub report_html: bool,
+    /// Deflate effort of the PNG maps.
+    pub png_compression: PngCompression,
 }
 
 impl Default for MapOptions {
@@ -41,6 +46,7 @@ impl Default for MapOptions {
             exr: true,
             display_matrix: None,
             report_html: true,
+            png_compression: PngCompression::Fast,
         }
     }
 }
@@ -70,77 +76,142 @@ pub fn prepare_output_dir(dir: &Path, force: bool) -> Result<()> {
     create_dir_all(dir)
 }
 
-/// Writes the maps of `result` into `dir` (each file atomically; the four encoders run in
-/// parallel).
+/// Writes the maps of `result` into `dir` (each file atomically; the files are encoded in
+/// parallel, one per core, and the EXR encoder compresses its blocks in parallel too).
 pub fn write_maps(result: &SolveResult, dir: &Path, options: &MapOptions) -> Result<WrittenMaps> {
-    let (w, h) = (result.width, result.height);
-    let path = |name: &str| dir.join(name);
-    let normal_png = || -> Result<Option<PathBuf>> {
-        if !options.png {
-            return Ok(None);
+    write_maps_timed(result, dir, options, &Busy::new(&MAP_STAGES))
+}
+
+/// The stages [`write_maps_timed`] records: each map's encoding and its write to disk.
+pub const MAP_STAGES: [&str; 10] = [
+    "encode normal.png",
+    "write normal.png",
+    "encode albedo.png",
+    "write albedo.png",
+    "encode normal.exr",
+    "write normal.exr",
+    "encode albedo.exr",
+    "write albedo.exr",
+    "encode confidence.exr",
+    "write confidence.exr",
+];
+
+/// One map file to write: its name, and whether it is asked for.
+#[derive(Clone, Copy, PartialEq)]
+enum MapFile {
+    NormalPng,
+    AlbedoPng,
+    NormalExr,
+    AlbedoExr,
+    Confidence,
+}
+
+impl MapFile {
+    fn name(self) -> &'static str {
+        match self {
+            MapFile::NormalPng => "normal.png",
+            MapFile::AlbedoPng => "albedo.png",
+            MapFile::NormalExr => "normal.exr",
+            MapFile::AlbedoExr => "albedo.exr",
+            MapFile::Confidence => "confidence.exr",
         }
-        let p = path("normal.png");
-        write::write_png16(
-            &p,
+    }
+}
+
+/// [`write_maps`], adding each map's encode and write time to `busy` (which holds
+/// [`MAP_STAGES`]).
+pub fn write_maps_timed(
+    result: &SolveResult,
+    dir: &Path,
+    options: &MapOptions,
+    busy: &Busy,
+) -> Result<WrittenMaps> {
+    let mut files = vec![MapFile::Confidence];
+    if options.png {
+        files.extend([MapFile::NormalPng, MapFile::AlbedoPng]);
+    }
+    if options.exr {
+        files.extend([MapFile::NormalExr, MapFile::AlbedoExr]);
+    }
+    let written = files
+        .par_iter()
+        .map(|&file| {
+            let path = dir.join(file.name());
+            let bytes = busy.time(&format!("encode {}", file.name()), || {
+                encode_map(result, file, &path, options)
+            })?;
+            busy.time(&format!("write {}", file.name()), || {
+                crate::fsutil::write_atomic(&path, &bytes)
+            })?;
+            Ok((file, path))
+        })
+        .collect::<Result<Vec<(MapFile, PathBuf)>>>()?;
+    let find = |f: MapFile| {
+        written
+            .iter()
+            .find(|(k, _)| *k == f)
+            .map(|(_, p)| p.clone())
+    };
+    Ok(WrittenMaps {
+        normal_png: find(MapFile::NormalPng),
+        normal_exr: find(MapFile::NormalExr),
+        albedo_png: find(MapFile::AlbedoPng),
+        albedo_exr: find(MapFile::AlbedoExr),
+        confidence_exr: find(MapFile::Confidence).expect("the confidence map is always written"),
+    })
+}
+
+/// One map's file bytes.
+fn encode_map(
+    result: &SolveResult,
+    file: MapFile,
+    path: &Path,
+    options: &MapOptions,
+) -> Result<Vec<u8>> {
+    let (w, h) = (result.width, result.height);
+    match file {
+        MapFile::NormalPng => write::encode_png16(
+            path,
             w,
             h,
             encode::normal_rgb16(result, options.normal_convention),
-        )?;
-        Ok(Some(p))
-    };
-    let albedo_png = || -> Result<Option<PathBuf>> {
-        if !options.png {
-            return Ok(None);
-        }
-        let p = path("albedo.png");
-        write::write_png16(
-            &p,
+            options.png_compression,
+        ),
+        MapFile::AlbedoPng => write::encode_png16(
+            path,
             w,
             h,
             encode::albedo_rgb16(result, options.display_matrix.as_ref()),
-        )?;
-        Ok(Some(p))
-    };
-    let exrs = || -> Result<(Option<PathBuf>, Option<PathBuf>, PathBuf)> {
-        let (mut normal, mut albedo) = (None, None);
-        if options.exr {
+            options.png_compression,
+        ),
+        MapFile::NormalExr => {
             let [nx, ny, nz] = encode::normal_planes(result, options.normal_convention);
-            let p = path("normal.exr");
-            write::write_exr(&p, &[("R", &nx), ("G", &ny), ("B", &nz)])?;
-            normal = Some(p);
-            let [r, g, b] = &result.albedo;
-            let p = path("albedo.exr");
-            write::write_exr(&p, &[("R", r), ("G", g), ("B", b)])?;
-            albedo = Some(p);
+            write::encode_exr(path, &[("R", &nx), ("G", &ny), ("B", &nz)])
         }
-        let p = path("confidence.exr");
-        let lights = Plane::from_vec(w, h, result.lights_used.iter().map(|&v| v as f32).collect())?;
-        let status = Plane::from_vec(
-            w,
-            h,
-            result.status.iter().map(|&s| s as u8 as f32).collect(),
-        )?;
-        let fit = Plane::from_vec(w, h, result.fit.iter().map(|&f| f as u8 as f32).collect())?;
-        write::write_exr(
-            &p,
-            &[
-                ("residual", &result.residual),
-                ("predicted_error_deg", &result.predicted_error_deg),
-                ("condition", &result.condition),
-                ("lights_used", &lights),
-                ("status", &status),
-                ("fit", &fit),
-            ],
-        )?;
-        Ok((normal, albedo, p))
-    };
-    let ((normal_png, albedo_png), exr) = rayon::join(|| rayon::join(normal_png, albedo_png), exrs);
-    let (normal_exr, albedo_exr, confidence_exr) = exr?;
-    Ok(WrittenMaps {
-        normal_png: normal_png?,
-        normal_exr,
-        albedo_png: albedo_png?,
-        albedo_exr,
-        confidence_exr,
-    })
+        MapFile::AlbedoExr => {
+            let [r, g, b] = &result.albedo;
+            write::encode_exr(path, &[("R", r), ("G", g), ("B", b)])
+        }
+        MapFile::Confidence => {
+            let lights =
+                Plane::from_vec(w, h, result.lights_used.iter().map(|&v| v as f32).collect())?;
+            let status = Plane::from_vec(
+                w,
+                h,
+                result.status.iter().map(|&s| s as u8 as f32).collect(),
+            )?;
+            let fit = Plane::from_vec(w, h, result.fit.iter().map(|&f| f as u8 as f32).collect())?;
+            write::encode_exr(
+                path,
+                &[
+                    ("residual", &result.residual),
+                    ("predicted_error_deg", &result.predicted_error_deg),
+                    ("condition", &result.condition),
+                    ("lights_used", &lights),
+                    ("status", &status),
+                    ("fit", &fit),
+                ],
+            )
+        }
+    }
 }

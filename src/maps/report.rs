@@ -11,6 +11,7 @@ use crate::eval::{Stats, TruthComparison};
 use crate::fsutil::write_atomic;
 use crate::region::RegionInfo;
 use crate::solve::{Estimator, PixelFit, PixelStatus, SolveOptions, SolveResult};
+use crate::timing::{StageClock, StageTime};
 
 /// Share of the solved pixels failing the adaptive estimator's model test above which the
 /// summary warns: far above the test's false-alarm rate on clean data (a fraction of a
@@ -56,7 +57,14 @@ pub struct Report {
     /// Crop, binning and background mask, when the solve did not cover every pixel.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub region: Option<crate::region::RegionInfo>,
+    /// Coarse phases (`decode`, `solve`, `write`, `total`), for scripts that read them.
     pub timings_s: BTreeMap<String, f64>,
+    /// Where the wall time went, stage by stage in the order they ran, ending with `other`
+    /// (what no stage covers): the rows add up to `timings_s.total`. Stages that share the
+    /// cores (reading, hashing and decoding frames; encoding maps) split their phase's wall
+    /// time in proportion to their busy time, which they also give.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub stages: Vec<StageTime>,
     pub outputs: WrittenMaps,
     /// How the frames were decoded and prepared (capture sets).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -279,6 +287,7 @@ impl Report {
             truth: None,
             region: None,
             timings_s: BTreeMap::new(),
+            stages: Vec::new(),
             outputs,
             decode: None,
             normal_truth: None,
@@ -320,6 +329,18 @@ impl Report {
             );
         }
         self.region = Some(region);
+    }
+
+    /// Takes the stage table of `clock` as it stands now (the total is now).
+    pub fn set_stages(&mut self, clock: &StageClock) {
+        let (rows, total) = clock.table();
+        self.stages = rows;
+        self.timings_s.insert("total".into(), total);
+    }
+
+    /// The total wall time of the solve, seconds.
+    pub fn total_s(&self) -> f64 {
+        self.timings_s.get("total").copied().unwrap_or(0.0)
     }
 
     pub fn to_json(&self) -> String {

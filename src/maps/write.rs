@@ -6,27 +6,67 @@ use std::path::Path;
 use exr::prelude::*;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{ImageBuffer, Rgb};
+use serde::{Deserialize, Serialize};
 
 use crate::error::{Error as PsError, Result};
 use crate::fsutil::write_atomic;
 use crate::plane::Plane;
 
-/// Writes interleaved 16-bit RGB as a PNG.
+/// How hard the PNG maps' deflate works.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PngCompression {
+    /// A fast deflate: files a little larger, written several times sooner (the default).
+    #[default]
+    Fast,
+    /// The smallest files the encoder makes, for archives; much slower.
+    Best,
+}
+
+impl PngCompression {
+    fn settings(self) -> (CompressionType, FilterType) {
+        match self {
+            PngCompression::Fast => (CompressionType::Fast, FilterType::Adaptive),
+            PngCompression::Best => (CompressionType::Best, FilterType::Adaptive),
+        }
+    }
+}
+
+/// Writes interleaved 16-bit RGB as a PNG (fast deflate).
 pub fn write_png16(path: &Path, width: usize, height: usize, rgb: Vec<u16>) -> Result<()> {
+    let bytes = encode_png16(path, width, height, rgb, PngCompression::Fast)?;
+    write_atomic(path, &bytes)
+}
+
+/// Interleaved 16-bit RGB encoded as PNG file bytes; `path` only names the file in errors.
+pub fn encode_png16(
+    path: &Path,
+    width: usize,
+    height: usize,
+    rgb: Vec<u16>,
+    compression: PngCompression,
+) -> Result<Vec<u8>> {
     let buffer: ImageBuffer<Rgb<u16>, Vec<u16>> =
         ImageBuffer::from_raw(width as u32, height as u32, rgb)
             .ok_or_else(|| PsError::image(path, "image size does not match its data"))?;
     let mut bytes = Vec::new();
-    let encoder =
-        PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, FilterType::Adaptive);
+    let (level, filter) = compression.settings();
+    let encoder = PngEncoder::new_with_quality(&mut bytes, level, filter);
     image::DynamicImage::ImageRgb16(buffer)
         .write_with_encoder(encoder)
         .map_err(|e| PsError::image(path, e))?;
-    write_atomic(path, &bytes)
+    Ok(bytes)
 }
 
 /// Writes named `f32` channels of one size as a single-layer EXR (lossless compression).
 pub fn write_exr(path: &Path, channels: &[(&str, &Plane)]) -> Result<()> {
+    let bytes = encode_exr(path, channels)?;
+    write_atomic(path, &bytes)
+}
+
+/// Named `f32` channels of one size encoded as single-layer EXR file bytes (lossless; the
+/// exr crate compresses its blocks on all cores); `path` only names the file in errors.
+pub fn encode_exr(path: &Path, channels: &[(&str, &Plane)]) -> Result<Vec<u8>> {
     let Some((_, first)) = channels.first() else {
         return Err(PsError::image(path, "no channels to write"));
     };
@@ -52,7 +92,7 @@ pub fn write_exr(path: &Path, channels: &[(&str, &Plane)]) -> Result<()> {
         .write()
         .to_buffered(&mut cursor)
         .map_err(|e| PsError::image(path, e))?;
-    write_atomic(path, &cursor.into_inner())
+    Ok(cursor.into_inner())
 }
 
 /// Reads the named channels of an EXR's first layer; fails naming a missing channel.
@@ -108,5 +148,28 @@ mod tests {
         write_png16(&path, 2, 2, data.clone()).unwrap();
         let back = image::open(&path).unwrap().into_rgb16().into_raw();
         assert_eq!(back, data);
+    }
+
+    #[test]
+    fn best_png_compression_keeps_the_pixels_and_is_no_larger_than_fast() {
+        // A smooth gradient with a little structure: deflate has something to find.
+        let (w, h) = (64, 48);
+        let data: Vec<u16> = (0..w * h * 3)
+            .map(|i| ((i / 3) % w * 900 + (i / 3) / w * 37 + (i % 3) * 5) as u16)
+            .collect();
+        let path = Path::new("gradient.png");
+        let fast = encode_png16(path, w, h, data.clone(), PngCompression::Fast).unwrap();
+        let best = encode_png16(path, w, h, data.clone(), PngCompression::Best).unwrap();
+        assert_ne!(fast, best, "the flag must change the encoder's settings");
+        assert!(
+            best.len() <= fast.len(),
+            "best {} > fast {}",
+            best.len(),
+            fast.len()
+        );
+        for bytes in [&fast, &best] {
+            let back = image::load_from_memory(bytes).unwrap().into_rgb16();
+            assert_eq!(back.into_raw(), data);
+        }
     }
 }

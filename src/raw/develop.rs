@@ -14,6 +14,7 @@ use super::linear::{decode_dn_image, Levels};
 use super::mosaic::{develop_stack, subtract_dark, LinearMosaic, Resolution};
 use crate::error::{Error, Result};
 use crate::plane::LightFrame;
+use crate::timing::{Busy, StageClock};
 
 /// How frames are stored in a capture set (`image.encoding` in the manifest).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -91,11 +92,35 @@ pub fn decode_frame(
     encoding: Encoding,
     dn16_levels: &Levels,
 ) -> Result<DecodedFrame> {
+    decode_frame_timed(
+        bytes,
+        path,
+        encoding,
+        dn16_levels,
+        &Busy::new(&DECODE_STAGES),
+    )
+}
+
+/// The stages [`decode_frame_timed`] records: the codec (rawler, or the PNG decoder) and the
+/// linearisation to `f32` (black and white level).
+pub const DECODE_STAGES: [&str; 2] = ["decode", "linearize"];
+
+/// [`decode_frame`], adding the codec's and the linearisation's time to `busy` (which holds
+/// [`DECODE_STAGES`]).
+pub fn decode_frame_timed(
+    bytes: Vec<u8>,
+    path: &Path,
+    encoding: Encoding,
+    dn16_levels: &Levels,
+    busy: &Busy,
+) -> Result<DecodedFrame> {
     match encoding {
         Encoding::Dn16 => {
-            let dn = decode_dn_image(&bytes, path)?;
+            let dn = busy.time("decode", || decode_dn_image(&bytes, path))?;
+            drop(bytes);
+            let frame = busy.time("linearize", || dn.to_light_frame(dn16_levels));
             Ok(DecodedFrame {
-                data: FrameData::Rgb(dn.to_light_frame(dn16_levels)),
+                data: FrameData::Rgb(frame),
                 meta: None,
                 levels: *dn16_levels,
                 cfa_pattern: None,
@@ -104,8 +129,10 @@ pub fn decode_frame(
             })
         }
         Encoding::Raw => {
-            let raw = decode_raw(bytes, path)?;
-            let mosaic = raw.mosaic.linearize().map_err(|e| Error::image(path, e))?;
+            let raw = busy.time("decode", || decode_raw(bytes, path))?;
+            let mosaic = busy
+                .time("linearize", || raw.mosaic.linearize())
+                .map_err(|e| Error::image(path, e))?;
             Ok(DecodedFrame {
                 data: FrameData::Mosaic(mosaic),
                 levels: Levels {
@@ -129,6 +156,24 @@ pub fn develop_frames(
     dark: Option<DecodedFrame>,
     illuminants: Option<&[[f64; 3]]>,
     resolution: Resolution,
+) -> Result<Vec<LightFrame>> {
+    develop_frames_timed(
+        lights,
+        dark,
+        illuminants,
+        resolution,
+        &mut StageClock::start(),
+    )
+}
+
+/// [`develop_frames`], timing the dark subtraction and the demosaic (or binning) as stages
+/// of `clock`.
+pub fn develop_frames_timed(
+    lights: Vec<DecodedFrame>,
+    dark: Option<DecodedFrame>,
+    illuminants: Option<&[[f64; 3]]>,
+    resolution: Resolution,
+    clock: &mut StageClock,
 ) -> Result<Vec<LightFrame>> {
     let mut rgb = Vec::new();
     let mut mosaics = Vec::new();
@@ -155,8 +200,9 @@ pub fn develop_frames(
             let FrameData::Rgb(dark) = dark.data else {
                 return Err(Error::Invalid("a RAW dark frame in a dn16 set".into()));
             };
-            rgb.par_iter_mut()
-                .try_for_each(|f| subtract_dark(f, &dark))?;
+            clock.time(DARK_STAGE, || {
+                rgb.par_iter_mut().try_for_each(|f| subtract_dark(f, &dark))
+            })?;
         }
         return Ok(rgb);
     }
@@ -164,12 +210,20 @@ pub fn develop_frames(
         let FrameData::Mosaic(dark) = dark.data else {
             return Err(Error::Invalid("an RGB dark frame in a RAW set".into()));
         };
-        for m in &mut mosaics {
-            m.subtract(&dark)?;
-        }
+        // Each frame independently: one per core.
+        clock.time(DARK_STAGE, || {
+            mosaics.par_iter_mut().try_for_each(|m| m.subtract(&dark))
+        })?;
     }
-    develop_stack(mosaics, illuminants, resolution)
+    let stage = match resolution {
+        Resolution::Full => "demosaic",
+        Resolution::Half => "bin 2x2",
+    };
+    clock.time(stage, || develop_stack(mosaics, illuminants, resolution))
 }
+
+/// The stage name of the dark-frame subtraction.
+pub const DARK_STAGE: &str = "dark subtraction";
 
 /// Checks that RAW frames were shot alike: same camera, size, ISO, shutter and aperture.
 /// `frames` pairs each file's name with its metadata; the error lists which files hold which

@@ -21,8 +21,9 @@ pub use decode::{
     decode_raw, probe_raw, quiet_decoder_panics, read_raw, DecodedRaw, RawMeta, MAX_SAMPLES,
 };
 pub use develop::{
-    check_consistent, check_plausible, decode_frame, develop_frames, DecodeInfo, DecodedFrame,
-    DevelopOptions, Encoding, FrameData,
+    check_consistent, check_plausible, decode_frame, decode_frame_timed, develop_frames,
+    develop_frames_timed, DecodeInfo, DecodedFrame, DevelopOptions, Encoding, FrameData,
+    DARK_STAGE, DECODE_STAGES,
 };
 pub use dng::{encode_dng, DngStorage};
 pub use linear::{decode_dn_image, encode_png16, read_dn_image, DnImage, Levels};

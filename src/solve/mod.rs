@@ -158,7 +158,38 @@ pub struct SolveOptions {
     pub streaming_kernel: bool,
 }
 
+/// The tile tolerance of the default kernel, degrees: light coefficients are shared across
+/// tiles only where that moves no normal by more than this.
+pub const DEFAULT_TILE_TOLERANCE_DEG: f64 = 0.01;
+
+/// How far the default kernel's least-squares normal of a pixel may lie from the exact
+/// kernel's, degrees, given the pixel's light-matrix `condition` number, for measurements the
+/// Lambertian model fits (sensor noise adds its residual times the tiles' coefficient error,
+/// of the order of the noise's own effect times the tile tolerance): twice the tile tolerance
+/// (the tile planner aims at the tolerance on sampled test normals, it does not bound every
+/// pixel: near the sensor's corners pixels move up to ~1.2x it) plus the forward error of a single-precision least-squares solve, `condition^2 * K * eps`
+/// with K = 40 for the ten-light normal equations (the bound `tests_fast` checks the f32
+/// kernel against; about 5e-4 degrees at condition 10, mostly far less in practice).
+pub fn default_kernel_tolerance_deg(condition: f64) -> f64 {
+    2.0 * DEFAULT_TILE_TOLERANCE_DEG
+        + (condition * condition * 40.0 * f32::EPSILON as f64).to_degrees()
+}
+
 impl SolveOptions {
+    /// These options with the default kernel of `psscan solve`: the streaming f32 kernel with
+    /// tiled coefficients ([`DEFAULT_TILE_TOLERANCE_DEG`]), whose normals lie within
+    /// [`default_kernel_tolerance_deg`] of the exact kernel's, wherever the estimator and method
+    /// allow it (the adaptive estimator sends the pixels its screen flags to the exact kernel).
+    /// The robust estimator and the SVD method keep the exact kernel, which `--precision f64`
+    /// also asks for.
+    pub fn with_default_kernel(mut self) -> Self {
+        if self.estimator != Estimator::Robust && self.method != Method::Svd {
+            self.precision = Precision::F32;
+            self.tile_tolerance_deg = Some(DEFAULT_TILE_TOLERANCE_DEG);
+        }
+        self
+    }
+
     /// Whether the streaming kernel solves the pixels (the least-squares and adaptive
     /// estimators; the adaptive one sends the pixels its screen flags to the exact kernel).
     pub fn streaming(&self) -> bool {

@@ -330,3 +330,60 @@ fn reused_outputs_give_the_same_results_as_fresh_ones() {
         assert_same(&reused, &fresh, what);
     }
 }
+
+/// The default kernel of `psscan solve` (`with_default_kernel`: streaming f32 with tiles) keeps
+/// its least-squares normals within the stated `default_kernel_tolerance_deg` of the exact
+/// kernel's, and the adaptive estimator on it solves every pixel its screen sends on with the
+/// exact kernel, as the exact adaptive estimator does.
+#[test]
+fn the_default_kernel_stays_within_its_stated_tolerance() {
+    let rig = Rig::default_rig();
+    for kind in [SceneKind::Lambertian, SceneKind::Shadows] {
+        let (_, frames) = render_scene(&rig, kind, MP, &Silent).unwrap();
+        let default = exact_ls().with_default_kernel();
+        assert_eq!(default.precision, Precision::F32);
+        assert_eq!(default.tile_tolerance_deg, Some(DEFAULT_TILE_TOLERANCE_DEG));
+        let exact_ls_result = run(&rig, &frames, &exact_ls(), None);
+        let exact = &exact_ls_result;
+        let fast = run(&rig, &frames, &default, None);
+        assert_eq!(fast.status, exact.status);
+        for i in 0..fast.status.len() {
+            if fast.status[i] == PixelStatus::Solved {
+                let e = crate::eval::angle_deg(&fast.normal_at(i), &exact.normal_at(i));
+                let tolerance = default_kernel_tolerance_deg(exact.condition.data[i] as f64);
+                assert!(e <= tolerance, "{kind:?} ls pixel {i}: {e} deg");
+            }
+        }
+
+        let adaptive = SolveOptions {
+            estimator: Estimator::Adaptive,
+            ..exact_ls()
+        };
+        let exact = run(&rig, &frames, &adaptive, None);
+        let fast = run(&rig, &frames, &adaptive.clone().with_default_kernel(), None);
+        assert_eq!(fast.status, exact.status);
+        let mut differ = 0;
+        for i in 0..fast.status.len() {
+            if fast.status[i] != PixelStatus::Solved {
+                continue;
+            }
+            if fast.fit[i] != exact.fit[i] {
+                differ += 1;
+            } else if fast.fit[i] != PixelFit::LeastSquares {
+                assert_eq!(fast.normal_at(i), exact.normal_at(i), "{kind:?} pixel {i}");
+            } else {
+                // The fast least squares, or sent on and kept all lights in the exact kernel.
+                let ls = &exact_ls_result;
+                let e = crate::eval::angle_deg(&fast.normal_at(i), &ls.normal_at(i));
+                let tolerance = default_kernel_tolerance_deg(ls.condition.data[i] as f64);
+                let same = fast.normal_at(i) == exact.normal_at(i);
+                assert!(e <= tolerance || same, "{kind:?} pixel {i}: {e} deg");
+            }
+        }
+        eprintln!(
+            "{kind:?}: {differ} of {} pixels fitted differently, {} escalated",
+            fast.status.len(),
+            exact.escalated
+        );
+    }
+}
