@@ -641,6 +641,7 @@ pub fn solve_capture_set_reusing(
     };
     let result = solve::solve_reusing(&input, &job.options, progress, buffers.take())?;
     timings.insert("solve".into(), start.elapsed().as_secs_f64());
+    let pixel_size_mm = pixel_size_mm(&set.rig, &frames.window);
     drop(frames);
 
     let start = Instant::now();
@@ -668,12 +669,23 @@ pub fn solve_capture_set_reusing(
         report.region = Some(region_info);
     }
     report.decode = Some(decode);
+    report.pixel_size_mm = Some(pixel_size_mm);
+    report.normal_convention = job.maps.normal_convention;
     timings.insert("total".into(), total.elapsed().as_secs_f64());
     report.timings_s = timings;
     report.write(&stage.path().join(maps::REPORT_FILE))?;
     stage.commit(job.force, maps::REPORT_FILE)?;
     *buffers = Some(result);
     Ok(report)
+}
+
+/// Millimetres on the sample plane per map pixel at the image centre: the camera's height
+/// above the sample over its focal length, times the sensor pixels per map pixel (binning,
+/// synthetic steps). Perspective and tilt change it by well under a per cent across a
+/// sample on the seed's rig; `derive` uses it for heights, radii and the glTF quad.
+pub fn pixel_size_mm(rig: &Rig, window: &SensorWindow) -> f64 {
+    let distance_m = rig.camera.position_m[2] - rig.sample.z_m;
+    distance_m / rig.camera.fx * window.step * 1e3
 }
 
 /// The written maps' paths under their final folder name.

@@ -52,6 +52,11 @@ pub struct Report {
     /// `--rig`, or `--allow-calibration-mismatch` with another bundle).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub calibration_cited_by_set: Option<crate::calibration::bundle::CalibrationRef>,
+    /// Millimetres on the sample per map pixel (from the rig's camera), for `derive`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pixel_size_mm: Option<f64>,
+    /// How the normal maps store Y (`derive` reads normal.exr back through it).
+    pub normal_convention: super::NormalConvention,
 }
 
 #[derive(Clone, Copy, Debug, Serialize)]
@@ -110,6 +115,8 @@ impl Report {
             normal_truth: None,
             calibration: None,
             calibration_cited_by_set: None,
+            pixel_size_mm: None,
+            normal_convention: super::NormalConvention::default(),
         }
     }
 
