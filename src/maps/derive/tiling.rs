@@ -116,13 +116,13 @@ impl Cut {
         cols.par_chunks_mut(tw).enumerate().for_each(|(r, out)| {
             let src = &p.data[(y0 + r) * p.width..(y0 + r + 1) * p.width];
             for (x, v) in out.iter_mut().enumerate() {
-                *v = fade(src[x0 + x], src[x0 + x + tw], x, bw);
+                *v = fade(src[x0 + x], || src[x0 + x + tw], x, bw);
             }
         });
         let mut data = vec![0.0f32; tw * th];
         data.par_chunks_mut(tw).enumerate().for_each(|(y, out)| {
             for (x, v) in out.iter_mut().enumerate() {
-                *v = fade(cols[y * tw + x], cols[(y + th) * tw + x], y, bh);
+                *v = fade(cols[y * tw + x], || cols[(y + th) * tw + x], y, bh);
             }
         });
         Plane {
@@ -135,10 +135,11 @@ impl Cut {
 
 /// Inside the blend, from the pixel one repeat on (`next`, continuous with the tile's far
 /// edge) to the pixel itself, with a smoothstep weight that is 0 at the edge.
-fn fade(here: f32, next: f32, i: usize, blend: usize) -> f32 {
+fn fade(here: f32, next: impl Fn() -> f32, i: usize, blend: usize) -> f32 {
     if i >= blend {
         return here;
     }
+    let next = next();
     let t = i as f32 / blend as f32;
     let s = t * t * (3.0 - 2.0 * t);
     s * here + (1.0 - s) * next
@@ -187,8 +188,8 @@ pub fn seam_excess(p: &Plane) -> f64 {
 }
 
 /// The repeat of `lum` along x and y (pixels, sub-pixel): the autocorrelation (zero-padded,
-/// normalised by the overlap) along each axis, its first lag within 90 % of the strongest
-/// off-centre peak, refined at the farthest multiple of it that fits and divided back.
+/// normalised by the overlap) along each axis, past the central lobe its first peak within
+/// 90 % of the strongest, refined at the farthest multiple of it that fits and divided back.
 pub fn weave_period(lum: &Plane) -> Result<[f64; 2]> {
     let (w, h) = (lum.width, lum.height);
     if w < 16 || h < 16 {
@@ -231,8 +232,8 @@ fn no_period(axis: &str) -> Error {
 /// The period of a 1-D autocorrelation `a` (lags 0..n).
 fn period_1d(a: &[f64]) -> Option<f64> {
     let n = a.len();
-    // Past the central lobe: the first lag where the correlation goes negative.
-    let start = (1..n).find(|&d| a[d] < 0.0)?;
+    // Past the central lobe: its first local minimum.
+    let start = (1..n - 1).find(|&d| a[d] <= a[d + 1])?;
     let peaks: Vec<usize> = (start.max(1)..n - 1)
         .filter(|&d| a[d] > a[d - 1] && a[d] >= a[d + 1] && a[d] > 0.0)
         .collect();
@@ -262,5 +263,76 @@ fn refine(a: &[f64], d: usize) -> f64 {
         d as f64
     } else {
         d as f64 + (0.5 * (l - r) / denom).clamp(-0.5, 0.5)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::textile::Textile;
+
+    /// The synthetic twill's albedo with a short sett (red 4, cream 4 threads: the colour
+    /// and the weave both repeat every 8 threads = 7.2 mm) at 0.07 mm per pixel, so the
+    /// period is 102.857 px, not a whole number.
+    fn weave(w: usize, h: usize) -> ([Plane; 3], f64) {
+        let t = Textile {
+            sett: vec![(0, 4), (3, 4)],
+            fold_amplitude_m: 0.0,
+            ..Textile::default()
+        };
+        let px = 0.07e-3;
+        let mut rgb = [
+            Plane::new(w, h, 0.0),
+            Plane::new(w, h, 0.0),
+            Plane::new(w, h, 0.0),
+        ];
+        for r in 0..h {
+            for c in 0..w {
+                let a = t.albedo(&t.surface_at(c as f64 * px, -(r as f64) * px));
+                for k in 0..3 {
+                    rgb[k].data[r * w + c] = a[k] as f32;
+                }
+            }
+        }
+        (rgb, 8.0 * t.thread_pitch_m / px)
+    }
+
+    #[test]
+    fn the_weave_period_is_found_within_a_pixel() {
+        let (rgb, period) = weave(640, 560);
+        let found = weave_period(&luminance(&rgb)).unwrap();
+        eprintln!("weave period: true {period:.3} px, found {found:?}");
+        for p in found {
+            assert!((p - period).abs() < 1.0, "found {p}, true {period}");
+        }
+    }
+
+    #[test]
+    fn blending_removes_the_seam_of_an_arbitrary_repeat() {
+        // A repeat that is not the weave's: the plain crop has a seam, the blend hides it.
+        let (rgb, _) = weave(400, 400);
+        let lum = luminance(&rgb);
+        let cut = Cut {
+            origin: [37, 41],
+            tile: [150, 170],
+            blend: [37, 42],
+        };
+        let crop = seam_excess(&cut.crop(&lum));
+        let blended = seam_excess(&cut.blend(&lum));
+        eprintln!("seam excess: crop {crop:.5}, blended {blended:.5}");
+        assert!(crop > 0.005, "the plain crop shows a seam: {crop}");
+        assert!(
+            blended <= 0.1 * crop,
+            "seam reduced by {:.1} %",
+            100.0 * (1.0 - blended / crop)
+        );
+    }
+
+    #[test]
+    fn too_small_maps_and_oversized_repeats_are_refused() {
+        assert!(weave_period(&Plane::new(8, 8, 0.5)).is_err());
+        let flat = Plane::new(64, 64, 0.5);
+        let err = weave_period(&flat).unwrap_err().to_string();
+        assert!(err.contains("--tile"), "{err}");
     }
 }
