@@ -9,8 +9,10 @@ use rustfft::num_complex::Complex32;
 use super::fft::{angular_frequency, Fft2};
 use crate::plane::Plane;
 
-/// Slopes steeper than this (about 84 deg) are clamped, as in flattening.
-const MAX_SLOPE: f32 = 10.0;
+/// Slopes steeper than this (63 deg) are clamped: a woven sample's steps (thread edge down to
+/// the gap) have no normal a camera can measure, and the near-horizontal normals sampled on
+/// them are not integrable; left unclamped they bend the whole height field.
+const MAX_SLOPE: f32 = 2.0;
 
 /// Whether the map's edges meet (a seamless tile) or not (a scanned sample).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
