@@ -704,6 +704,7 @@ pub fn solve_capture_set_reusing(
             maps::html::write_frame_strip(&frames, stage.path())
         })?;
     }
+    let pixel_size_mm = pixel_size_mm(&set.rig, &frames.window);
     clock.time("free frames", || drop(frames));
 
     let map_options = MapOptions {
@@ -764,6 +765,7 @@ pub fn solve_capture_set_reusing(
         report
     });
     report.decode = Some(decode);
+    report.pixel_size_mm = Some(pixel_size_mm);
     let report_s = clock.elapsed() - report_start;
     report.set_stages(&clock);
     let total = report.total_s();
@@ -799,6 +801,15 @@ fn light_records(set: &CaptureSet) -> Vec<maps::report::LightRecord> {
             ..maps::report::LightRecord::toward(led.position_m)
         })
         .collect()
+}
+
+/// Millimetres on the sample plane per map pixel at the image centre: the camera's height
+/// above the sample over its focal length, times the sensor pixels per map pixel (binning,
+/// synthetic steps). Perspective and tilt change it by well under a per cent across a
+/// sample on the seed's rig; `derive` uses it for heights, radii and the glTF quad.
+pub fn pixel_size_mm(rig: &Rig, window: &SensorWindow) -> f64 {
+    let distance_m = rig.camera.position_m[2] - rig.sample.z_m;
+    distance_m / rig.camera.fx * window.step * 1e3
 }
 
 /// The written maps' paths under their final folder name.

@@ -6,6 +6,7 @@
 mod calibrate;
 mod calibrate_steps;
 mod capture;
+mod derive;
 mod progress;
 mod report;
 mod signals;
@@ -68,6 +69,9 @@ enum Command {
     /// Rebuild a solve folder's report.html (one self-contained page), or render its relight
     /// on the CPU.
     Report(report::ReportArgs),
+    /// Turn a solve into an engine-ready material: flattening, height, seamless tile,
+    /// roughness mips, engine textures, DDS, glTF.
+    Derive(derive::DeriveArgs),
 }
 
 #[derive(Args)]
@@ -456,6 +460,7 @@ fn dispatch(cli: &Cli, bars: &Bars) -> anyhow::Result<()> {
         Command::Calibrate(args) => calibrate::calibrate(args, cli.json, bars),
         Command::Bench(args) => bench(args, cli.json, bars),
         Command::Report(args) => report::report(args, cli.json),
+        Command::Derive(args) => derive::derive(args, cli.json, bars),
     }
 }
 
@@ -579,6 +584,7 @@ impl Command {
             Command::Calibrate(_) => "`psscan calibrate`",
             Command::Bench(_) => "`psscan bench`",
             Command::Report(_) => "`psscan report`",
+            Command::Derive(_) => "`psscan derive`",
         }
     }
 }

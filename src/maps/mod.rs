@@ -3,6 +3,7 @@
 //! (EXR: residual, predicted error, condition, lights used, status, which fit: 0 least
 //! squares, 1 robust, 2 sheen) and `report.json`.
 
+pub mod derive;
 pub mod encode;
 pub mod html;
 pub mod report;

@@ -91,6 +91,9 @@ pub struct Report {
     /// Per-pixel normal errors against ground truth, binned (synthetic and benchmark sets).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub normal_error_histogram: Option<Histogram>,
+    /// Millimetres on the sample per map pixel (from the rig's camera), for `derive`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pixel_size_mm: Option<f64>,
 }
 
 /// One light of the solve.
@@ -297,6 +300,7 @@ impl Report {
             lights: Vec::new(),
             camera: None,
             normal_error_histogram: None,
+            pixel_size_mm: None,
         }
     }
 

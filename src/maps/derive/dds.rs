@@ -1,0 +1,157 @@
+//! DDS textures with full mip chains, block-compressed through image_dds (ISPC texture
+//! compressor): `normal.dds` BC5 (X in red, Y in green, `n * 0.5 + 0.5`; the shader
+//! reconstructs Z) from the renormalised normal mips, `albedo.dds` BC7 sRGB from box-filtered
+//! linear albedo, and `roughness.dds` BC4 holding the antialiased roughness of each level.
+
+use std::path::Path;
+
+use image_dds::{ImageFormat, Mipmaps, Quality, SurfaceRgba8};
+use rayon::prelude::*;
+
+use super::mips::MipChain;
+use super::SolvedMaps;
+use crate::error::{Error, Result};
+use crate::fsutil::write_atomic;
+use crate::maps::encode::linear_to_srgb;
+use crate::maps::NormalConvention;
+use crate::plane::Plane;
+
+// intel_tex_2 (image_dds's encoder) ships prebuilt kernels with C++ objects that need the
+// C++ runtime's exception personality, and does not link it itself.
+#[link(name = "stdc++")]
+extern "C" {}
+
+/// Writes the DDS files; `roughness` (one plane per level) adds `roughness.dds`.
+pub fn write_all(
+    dir: &Path,
+    chain: &MipChain,
+    maps: &SolvedMaps,
+    convention: NormalConvention,
+    roughness: Option<&[Plane]>,
+) -> Result<()> {
+    let (w, h) = (maps.width() as u32, maps.height() as u32);
+    let normal = || {
+        let levels: Vec<Vec<[u8; 4]>> = chain
+            .levels
+            .iter()
+            .map(|level| {
+                let [x, y, _] = level.normals();
+                x.data
+                    .par_iter()
+                    .zip(&y.data)
+                    .map(|(&x, &y)| {
+                        [
+                            unorm8(x * 0.5 + 0.5),
+                            unorm8(convention.y(y) * 0.5 + 0.5),
+                            0,
+                            255,
+                        ]
+                    })
+                    .collect()
+            })
+            .collect();
+        encode(
+            &dir.join("normal.dds"),
+            w,
+            h,
+            levels,
+            ImageFormat::BC5RgUnorm,
+        )
+    };
+    let albedo = || {
+        let mut linear = masked_albedo(maps);
+        let mut levels = Vec::with_capacity(chain.levels.len());
+        for _ in 0..chain.levels.len() {
+            levels.push(
+                (0..linear[0].len())
+                    .into_par_iter()
+                    .map(|i| {
+                        let c = |k: usize| unorm8(linear_to_srgb(linear[k].data[i]));
+                        [c(0), c(1), c(2), 255]
+                    })
+                    .collect(),
+            );
+            linear = linear.map(|p| halve_plane(&p));
+        }
+        encode(
+            &dir.join("albedo.dds"),
+            w,
+            h,
+            levels,
+            ImageFormat::BC7RgbaUnormSrgb,
+        )
+    };
+    let rough = || -> Result<()> {
+        let Some(levels) = roughness else {
+            return Ok(());
+        };
+        let levels = levels
+            .iter()
+            .map(|p| p.data.iter().map(|&r| [unorm8(r), 0, 0, 255]).collect())
+            .collect();
+        encode(
+            &dir.join("roughness.dds"),
+            w,
+            h,
+            levels,
+            ImageFormat::BC4RUnorm,
+        )
+    };
+    let ((n, a), r) = rayon::join(|| rayon::join(normal, albedo), rough);
+    n?;
+    a?;
+    r
+}
+
+fn unorm8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
+/// Linear albedo with unsolved pixels black.
+fn masked_albedo(maps: &SolvedMaps) -> [Plane; 3] {
+    maps.albedo.clone().map(|mut p| {
+        for (v, s) in p.data.iter_mut().zip(&maps.solved) {
+            if !s {
+                *v = 0.0;
+            }
+        }
+        p
+    })
+}
+
+/// 2 x 2 box average down to `max(1, size / 2)`, the same footprints as the normal mips.
+fn halve_plane(p: &Plane) -> Plane {
+    super::mips::halve(p)
+}
+
+/// Encodes a surface whose levels the caller made (so the normals are renormalised and the
+/// roughness antialiased per level, which a generic mip generator would not do).
+fn encode(
+    path: &Path,
+    width: u32,
+    height: u32,
+    levels: Vec<Vec<[u8; 4]>>,
+    format: ImageFormat,
+) -> Result<()> {
+    let mipmaps = levels.len() as u32;
+    let data: Vec<u8> = levels.into_iter().flatten().flatten().collect();
+    let surface = SurfaceRgba8 {
+        width,
+        height,
+        depth: 1,
+        layers: 1,
+        mipmaps,
+        data: data.as_slice(),
+    };
+    let failed =
+        |e: &dyn std::fmt::Display| Error::image(path, format!("DDS encoding failed: {e}"));
+    let dds = surface
+        .encode(format, Quality::Normal, Mipmaps::FromSurface)
+        .map_err(|e| failed(&e))?
+        .to_dds()
+        .map_err(|e| failed(&e))?;
+    let mut bytes = Vec::new();
+    dds.write(&mut bytes)
+        .map_err(|e| Error::image(path, format!("DDS writing failed: {e}")))?;
+    write_atomic(path, &bytes)
+}

@@ -1,0 +1,96 @@
+#!/usr/bin/env python3
+"""Independent check of psscan's DDS output: parses the DDS header and mip layout itself,
+decodes every level with Pillow's BCn decoder, and compares the normals with its own NumPy
+box-filtered, renormalised mips of the 16-bit normal.png psscan wrote beside them.
+
+usage: check_dds.py DERIVE_DIR   (prints one JSON line; exit 0 pass, 1 fail, 77 skip)
+"""
+import json
+import math
+import struct
+import sys
+
+try:
+    import numpy as np
+    from PIL import Image
+except ImportError as e:  # the Rust test turns this into a skip message
+    print(json.dumps({"skip": f"needs numpy and Pillow: {e}"}))
+    sys.exit(77)
+
+DXGI = {80: ("BC4_UNORM", 8, 4), 83: ("BC5_UNORM", 16, 5), 99: ("BC7_UNORM_SRGB", 16, 7)}
+
+
+def read_dds(path):
+    data = open(path, "rb").read()
+    if data[:4] != b"DDS ":
+        raise ValueError(f"{path}: not a DDS file")
+    height, width = struct.unpack_from("<II", data, 12)
+    mips = struct.unpack_from("<I", data, 28)[0] or 1
+    fourcc = data[84:88]
+    if fourcc != b"DX10":
+        raise ValueError(f"{path}: expected a DX10 header, got {fourcc!r}")
+    dxgi = struct.unpack_from("<I", data, 128)[0]
+    name, block, n = DXGI[dxgi]
+    offset = 148
+    levels = []
+    for level in range(mips):
+        w, h = max(1, width >> level), max(1, height >> level)
+        bw, bh = (w + 3) // 4, (h + 3) // 4
+        size = bw * bh * block
+        raw = data[offset:offset + size]
+        if len(raw) != size:
+            raise ValueError(f"{path}: level {level} truncated")
+        # Decode whole blocks, then crop to the level's size.
+        img = Image.frombytes({4: "L", 5: "RGB", 7: "RGBA"}[n], (bw * 4, bh * 4), raw, "bcn", (n,))
+        levels.append(np.asarray(img)[:h, :w])
+        offset += size
+    if offset != len(data):
+        raise ValueError(f"{path}: {len(data) - offset} bytes after the last level")
+    return name, width, height, levels
+
+
+def box_mips(n):
+    out = [n]
+    while out[-1].shape[0] > 1 or out[-1].shape[1] > 1:
+        a = out[-1]
+        h, w = a.shape[:2]
+        nh, nw = max(1, h // 2), max(1, w // 2)
+        a = a[: nh * 2 if h > 1 else 1, : nw * 2 if w > 1 else 1]
+        a = a.reshape(nh, a.shape[0] // nh, nw, a.shape[1] // nw, 3).mean(axis=(1, 3))
+        out.append(a)
+    return [m / np.linalg.norm(m, axis=2, keepdims=True) for m in out]
+
+
+def main(folder):
+    result = {}
+    png = np.asarray(Image.open(f"{folder}/normal.png")).astype(np.float64)
+    scale = 65535.0 if png.max() > 255 else 255.0
+    source = png[..., :3] / scale * 2.0 - 1.0
+    name, w, h, levels = read_dds(f"{folder}/normal.dds")
+    expected = box_mips(source)
+    want_levels = int(math.floor(math.log2(max(w, h)))) + 1
+    errors = []
+    for lvl, (dec, ref) in enumerate(zip(levels, expected)):
+        x = dec[..., 0] / 255.0 * 2 - 1
+        y = dec[..., 1] / 255.0 * 2 - 1
+        z = np.sqrt(np.clip(1 - x * x - y * y, 0, 1))
+        n = np.stack([x, y, z], axis=2)
+        n /= np.linalg.norm(n, axis=2, keepdims=True)
+        cos = np.clip((n * ref).sum(axis=2), -1, 1)
+        errors.append(float(np.degrees(np.arccos(cos)).mean()))
+    result["normal"] = {"format": name, "size": [w, h], "levels": len(levels),
+                        "levels_expected": want_levels, "mean_error_deg": errors}
+    name, aw, ah, alevels = read_dds(f"{folder}/albedo.dds")
+    ref = np.asarray(Image.open(f"{folder}/albedo.png")).astype(np.float64)
+    ref = ref[..., :3] / (65535.0 if ref.max() > 255 else 255.0)
+    diff = float(np.abs(alevels[0][..., :3] / 255.0 - ref).mean())
+    result["albedo"] = {"format": name, "levels": len(alevels), "mean_abs_error": diff}
+    ok = (len(levels) == want_levels and max(errors) < 1.5 and len(alevels) == want_levels
+          and diff < 3.0 / 255.0)
+    result["pass"] = ok
+    print(json.dumps(result))
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1]))
