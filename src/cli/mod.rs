@@ -6,6 +6,7 @@
 mod calibrate;
 mod calibrate_steps;
 mod capture;
+mod eval;
 mod progress;
 
 use std::path::{Path, PathBuf};
@@ -61,6 +62,9 @@ enum Command {
     /// Benchmark every solver variant on standard synthetic scenes: run time against error,
     /// beside the memory-read floor and a NumPy peer.
     Bench(BenchArgs),
+    /// Measure the estimators against ground truth on DiLiGenT-layout sets (real captures),
+    /// over deterministic light subsets, beside the trimmed and published anchors.
+    Eval(eval::EvalArgs),
 }
 
 #[derive(Args)]
@@ -376,6 +380,7 @@ pub fn run() -> i32 {
         Command::Lights(args) => capture::lights(args, cli.json),
         Command::Calibrate(args) => calibrate::calibrate(args, cli.json, &bars),
         Command::Bench(args) => bench(args, cli.json, &bars),
+        Command::Eval(args) => eval::eval(args, cli.json, &bars),
     };
     match outcome {
         Ok(()) => 0,
