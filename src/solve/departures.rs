@@ -137,23 +137,28 @@ pub(super) fn fit(
     all: &mut Vec<Measurement>,
     candidate: &mut Vec<Measurement>,
     scratch: &mut Vec<f64>,
+    least_squares: &Vector3<f64>,
 ) -> Option<Fit> {
     let m = measurements.len();
     if m < 5 {
         return None;
     }
-    let start = if m <= tuning.exhaustive_lights {
-        best_triple(measurements, scratch)?
-    } else {
-        trimmed_start(measurements, tuning.trim, all)?
-    };
-    let scale = residual_scale(measurements, &start, scratch);
+    // The trimmed fit decides cheaply whether the noise model explains the pixel; only then
+    // are the minimal subsets searched for the start.
+    let trimmed = trimmed_start(measurements, tuning.trim, all).unwrap_or(*least_squares);
+    let scale = residual_scale(measurements, &trimmed, scratch);
     scratch.clear();
     scratch.extend(measurements.iter().map(|m| m.test_var.sqrt()));
     let noise = median(scratch);
     if !(scale > tuning.model_scale_factor * noise) {
         return None;
     }
+    let start = if m <= tuning.exhaustive_lights {
+        best_triple(measurements, scratch)?
+    } else {
+        trimmed
+    };
+    let scale = residual_scale(measurements, &start, scratch);
     all.clear();
     all.extend_from_slice(measurements);
     let mut g = start;

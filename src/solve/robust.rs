@@ -160,6 +160,7 @@ pub(super) fn refine(
         &mut buffers.departures_all,
         &mut buffers.departures_kept,
         &mut buffers.residuals,
+        &least_squares.n_lum,
     ) {
         return fit;
     }
