@@ -171,7 +171,7 @@ fn trimmed_row(
             set.truth[1].data[i] as f64,
             set.truth[2].data[i] as f64,
         );
-        if !(t.norm() > 0.0) {
+        if t.norm().is_nan() || t.norm() <= 0.0 {
             continue;
         }
         solved += usize::from(n.is_some());

@@ -25,11 +25,11 @@ pub fn farthest_point(directions: &[[f64; 3]], k: usize) -> Vec<usize> {
             nearest_cos[i] = nearest_cos[i].max(dot(u, &unit[next]));
         }
         let mut best = None::<usize>;
-        for i in 0..n {
+        for (i, &cos) in nearest_cos.iter().enumerate() {
             if chosen.contains(&i) {
                 continue;
             }
-            if best.is_none_or(|b| nearest_cos[i] < nearest_cos[b]) {
+            if best.map_or(true, |b| cos < nearest_cos[b]) {
                 best = Some(i);
             }
         }
@@ -58,12 +58,13 @@ mod tests {
     #[test]
     fn starts_frontal_and_spreads_over_the_ring() {
         // A frontal light and eight on a 45 degree ring, plus a near-duplicate of ring light 1.
+        use std::f64::consts::FRAC_1_SQRT_2 as H;
         let mut dirs = vec![[0.05, 0.0, 0.99]];
         for j in 0..8 {
             let a = j as f64 * std::f64::consts::FRAC_PI_4;
-            dirs.push([a.cos() * 0.7071, a.sin() * 0.7071, 0.7071]);
+            dirs.push([a.cos() * H, a.sin() * H, H]);
         }
-        dirs.push([0.70, 0.02, 0.7071]);
+        dirs.push([0.70, 0.02, H]);
         // Frontal first, then the ring: the four lights 90 degrees apart come before the rest.
         assert_eq!(farthest_point(&dirs, 1), vec![0]);
         let five = farthest_point(&dirs, 5);
