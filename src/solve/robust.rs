@@ -154,14 +154,21 @@ pub(super) fn refine(
 ) -> Fit {
     let options = &context.kernel.options().robust;
     let chi = context.kernel.chi_square();
-    if let Some(fit) = departures::fit(
-        &departures::Departures::default(),
-        measurements,
-        &mut buffers.departures_all,
-        &mut buffers.departures_kept,
-        &mut buffers.residuals,
-        &least_squares.n_lum,
-    ) {
+    // A configured sheen model is the user's account of the model error: it decides there.
+    let data_scaled = options.sheen.is_none();
+    if let Some(fit) = data_scaled
+        .then(|| {
+            departures::fit(
+                &departures::Departures::default(),
+                measurements,
+                &mut buffers.departures_all,
+                &mut buffers.departures_kept,
+                &mut buffers.residuals,
+                &least_squares.n_lum,
+            )
+        })
+        .flatten()
+    {
         return fit;
     }
     let Some(start) = weighted_fit(chi, measurements) else {
