@@ -1,10 +1,11 @@
 # psscan: the two commands README.md gives, and their parts.
 #   make demo   render the synthetic textile and solve it (no system packages needed)
 #   make test   install what the full suite needs, then run every test
+#   make eval   the estimators on the real-data sets in ../shared/data (docs/eval/)
 
 CARGO ?= cargo
 
-.PHONY: demo test deps test-rust test-firmware lint report-screenshots
+.PHONY: demo test deps test-rust test-firmware lint report-screenshots eval
 
 demo:
 	$(CARGO) run --release -- demo
@@ -35,3 +36,13 @@ lint:
 report-screenshots:
 	$(CARGO) build --release
 	docs/report/screenshots.sh target/release/psscan
+
+# Real captures with ground truth (DiLiGenT-layout folders under ../shared/data): the table,
+# JSON and plot in docs/eval, then the tests that read those sets (ignored by make test).
+EVAL_SETS = $(sort $(patsubst %/Normal_gt.mat,%,$(wildcard ../shared/data/*/Normal_gt.mat ../shared/data/*/*/Normal_gt.mat)))
+
+eval:
+	@test -n "$(EVAL_SETS)" || { echo "make eval: no set with Normal_gt.mat under ../shared/data"; exit 1; }
+	$(CARGO) run --release -- --quiet eval $(EVAL_SETS) --lights 10,20,40,all --estimator ls,adaptive --out docs/eval > /dev/null
+	$(CARGO) test --release --test diligent --test batch -- --ignored
+	$(CARGO) test --release --lib capture::diligent -- --ignored

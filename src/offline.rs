@@ -137,18 +137,13 @@ fn solve_diligent_into(
         Ok((set, frames, mask))
     })?;
 
-    let full_scale = diligent::LEVELS.white - diligent::LEVELS.black;
     let input = SolveInput {
         frames: &frames,
         lights: LightSource::Directions {
             directions: &set.directions,
             intensities: &set.intensities,
         },
-        noise: NoiseModel {
-            photon: 0.0,
-            floor: 1.0 / 12.0 / (full_scale * full_scale),
-            ..NoiseModel::NONE
-        },
+        noise: diligent_noise(),
         exposure: 1.0,
         mask: mask.as_ref(),
     };
@@ -507,4 +502,71 @@ impl Progress for Budget<'_> {
             self.outer.advance(added);
         }
     }
+}
+
+/// The noise model of a DiLiGenT-layout set: the images carry no sensor description, so
+/// 16-bit quantisation only (`1/12 DN^2`).
+fn diligent_noise() -> NoiseModel {
+    let full_scale = diligent::LEVELS.white - diligent::LEVELS.black;
+    NoiseModel {
+        photon: 0.0,
+        floor: 1.0 / 12.0 / (full_scale * full_scale),
+        ..NoiseModel::NONE
+    }
+}
+
+/// Loads a DiLiGenT-layout set with ground truth for `psscan eval`; a set without
+/// `Normal_gt.mat` is an error that names it.
+pub fn open_eval_set(dir: &Path, progress: &dyn Progress) -> Result<eval::EvalSet> {
+    if set_kind(dir)? != SetKind::Diligent {
+        return Err(Error::capture_set(
+            dir,
+            "psscan eval reads DiLiGenT-layout sets with ground truth; this is a psscan capture set",
+        ));
+    }
+    let set = DiligentSet::open(dir)?;
+    let frames = set.load_frames(progress)?;
+    let mask = set.mask(frames.width, frames.height)?;
+    let truth = set
+        .normal_truth(frames.width, frames.height)?
+        .ok_or_else(|| {
+            Error::capture_set(
+                dir,
+                format!(
+                    "has no {}: psscan eval needs ground-truth normals",
+                    diligent::NORMAL_TRUTH
+                ),
+            )
+        })?;
+    let name = dir
+        .canonicalize()
+        .unwrap_or_else(|_| dir.to_path_buf())
+        .file_name()
+        .map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into());
+    Ok(eval::EvalSet {
+        name,
+        frames,
+        directions: set.directions,
+        intensities: set.intensities,
+        noise: diligent_noise(),
+        mask,
+        truth,
+    })
+}
+
+/// `psscan eval`: every set in `dirs` (loaded one at a time) through [`eval::evaluate`].
+pub fn evaluate_sets(
+    dirs: &[PathBuf],
+    options: &eval::EvalOptions,
+    progress: &dyn Progress,
+) -> Result<eval::EvalReport> {
+    let mut report = eval::EvalReport {
+        rows: Vec::new(),
+        anchors: Vec::new(),
+    };
+    for dir in dirs {
+        let set = open_eval_set(dir, progress)?;
+        eval::evaluate(&set, options, progress, &mut report)?;
+    }
+    Ok(report)
 }

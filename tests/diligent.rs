@@ -41,6 +41,7 @@ fn least_squares() -> SolveJob {
 }
 
 #[test]
+#[ignore = "reads ../shared/data: run by make eval"]
 fn the_bunny_sets_reproduce_the_reference_errors() {
     let dir = tempfile::tempdir().unwrap();
     for (variant, readme_l2, reference) in [
@@ -68,6 +69,7 @@ fn the_bunny_sets_reproduce_the_reference_errors() {
 }
 
 #[test]
+#[ignore = "reads ../shared/data: run by make eval"]
 fn a_flipped_axis_shows_as_a_large_error() {
     // The conventions are checked by the data: psscan's frame equals DiLiGenT's. Flipping y
     // (image rows down, as in OpenCV) would be a plausible mistake; it costs tens of degrees.

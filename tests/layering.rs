@@ -22,6 +22,7 @@ const LAYERS: &[(&str, u32)] = &[
     ("fsutil", 0),
     ("plane", 0),
     ("progress", 0),
+    ("timing", 0),
     ("math", 0),
     ("alloc", 0),
     ("rig", 1),

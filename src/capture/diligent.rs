@@ -289,6 +289,7 @@ mod tests {
     }
 
     #[test]
+    #[ignore = "reads ../shared/data: run by make eval"]
     fn the_bunny_set_reads_with_its_mask_and_truth() {
         let dir = bunny("bunny_lambert_noshadow");
         assert!(DiligentSet::is_diligent(&dir));

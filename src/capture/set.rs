@@ -15,9 +15,8 @@ use crate::fsutil::{create_dir_all, record_owned, sha256_hex, write_atomic};
 use crate::plane::Frames;
 use crate::progress::Progress;
 use crate::raw::{
-    check_consistent, check_plausible, decode_frame, decode_frame_timed, develop_frames,
-    develop_frames_timed, DecodeInfo, DecodedFrame, DevelopOptions, Encoding, RawMeta,
-    Resolution, DECODE_STAGES,
+    check_consistent, check_plausible, decode_frame_timed, develop_frames_timed, DecodeInfo,
+    DecodedFrame, DevelopOptions, Encoding, RawMeta, Resolution, DECODE_STAGES,
 };
 use crate::rig::Rig;
 use crate::timing::{Busy, StageClock};

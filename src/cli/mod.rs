@@ -7,6 +7,7 @@ mod calibrate;
 mod calibrate_steps;
 mod capture;
 mod derive;
+mod eval;
 mod progress;
 mod report;
 mod signals;
@@ -72,6 +73,9 @@ enum Command {
     /// Turn a solve into an engine-ready material: flattening, height, seamless tile,
     /// roughness mips, engine textures, DDS, glTF.
     Derive(derive::DeriveArgs),
+    /// Measure the estimators against ground truth on DiLiGenT-layout sets (real captures),
+    /// over deterministic light subsets, beside the trimmed and published anchors.
+    Eval(eval::EvalArgs),
 }
 
 #[derive(Args)]
@@ -461,6 +465,7 @@ fn dispatch(cli: &Cli, bars: &Bars) -> anyhow::Result<()> {
         Command::Bench(args) => bench(args, cli.json, bars),
         Command::Report(args) => report::report(args, cli.json),
         Command::Derive(args) => derive::derive(args, cli.json, bars),
+        Command::Eval(args) => eval::eval(args, cli.json, bars),
     }
 }
 
@@ -585,6 +590,7 @@ impl Command {
             Command::Bench(_) => "`psscan bench`",
             Command::Report(_) => "`psscan report`",
             Command::Derive(_) => "`psscan derive`",
+            Command::Eval(_) => "`psscan eval`",
         }
     }
 }

@@ -102,6 +102,7 @@ impl<'a> RowOut<'a> {
 }
 
 /// The solution at one pixel, before it is turned into outputs.
+#[derive(Clone)]
 pub(super) struct Fit {
     /// Scaled normals (unit normal times albedo): luminance first, then R, G, B.
     pub n_lum: Vector3<f64>,

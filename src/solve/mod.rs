@@ -9,6 +9,7 @@
 //! fewer than three lights, or with lights too close to coplanar, are flagged, never NaN.
 
 mod adaptive;
+mod departures;
 mod fast;
 mod kernel;
 mod lights;

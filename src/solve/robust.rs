@@ -22,6 +22,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::adaptive::ChiSquare;
+use super::departures;
 use super::kernel::{fit_normal_equations, Fit, Kernel, Measurement};
 use super::sheen::{self, SheenModel};
 use super::PixelFit;
@@ -116,6 +117,10 @@ pub(super) struct Buffers {
     sheen: Vec<Measurement>,
     /// All usable lights while the sheen rejection alternates with the sheen fit.
     usable: Vec<Measurement>,
+    /// The data-scaled fit's usable lights, candidate inliers and residuals.
+    departures_all: Vec<Measurement>,
+    departures_kept: Vec<Measurement>,
+    residuals: Vec<f64>,
 }
 
 /// True when `n_lum` predicts a positive reading for every light.
@@ -149,6 +154,23 @@ pub(super) fn refine(
 ) -> Fit {
     let options = &context.kernel.options().robust;
     let chi = context.kernel.chi_square();
+    // A configured sheen model is the user's account of the model error: it decides there.
+    let data_scaled = options.sheen.is_none();
+    if let Some(fit) = data_scaled
+        .then(|| {
+            departures::fit(
+                &departures::Departures::default(),
+                measurements,
+                &mut buffers.departures_all,
+                &mut buffers.departures_kept,
+                &mut buffers.residuals,
+                &least_squares.n_lum,
+            )
+        })
+        .flatten()
+    {
+        return fit;
+    }
     let Some(start) = weighted_fit(chi, measurements) else {
         return least_squares;
     };

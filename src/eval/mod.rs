@@ -1,5 +1,15 @@
 //! Comparing a solve with ground truth (synthetic sets, benchmark scenes): angular error of
-//! the normals and relative error of the albedo, as summary statistics.
+//! the normals and relative error of the albedo, as summary statistics; and the real-data
+//! evaluation behind `psscan eval` (`run`: estimators on light subsets of sets with ground
+//! truth, `table`: its Markdown, JSON and plot).
+
+pub mod anchors;
+pub mod run;
+pub mod subsets;
+pub mod table;
+pub mod trimmed;
+
+pub use run::{evaluate, EvalOptions, EvalReport, EvalSet, Row};
 
 use nalgebra::Vector3;
 use serde::Serialize;

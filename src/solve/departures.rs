@@ -1,0 +1,278 @@
+//! The robust fit where the sensor model does not explain the residuals (real surfaces: a
+//! diffuse lobe that is not quite Lambertian, inter-reflection, shadow edges, highlights), so
+//! the chi-square test fails at every pixel and a light's departure cannot be judged in units
+//! of sensor noise. The scale of a departure then comes from the pixel's own residuals (the
+//! MAD: half the lights may be outliers before it breaks), and a light is an outlier when it
+//! departs by several of those scales: below the prediction (a shadow only darkens) or above
+//! it (a highlight only brightens), each with its own limit, or when the fit predicts it in
+//! attached shadow (its reading is then not linear in the normal).
+//!
+//! The start must already be robust, or the residuals' scale and signs are those of a wrong
+//! normal: with few lights every minimal subset of three is tried (least median of squares,
+//! as RANSAC-style photometric stereo does; 120 triples of 10 lights), with more the readings
+//! are trimmed at both ends first.
+
+use nalgebra::{Matrix3, Vector3};
+
+use super::kernel::{fit_normal_equations, Fit, Measurement};
+use super::PixelFit;
+
+/// Consistency factor of the MAD for a normal distribution.
+const MAD_TO_SIGMA: f64 = 1.4826;
+
+/// Tuning of the data-scaled fit (fixed from the method, not fitted to any data set).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Departures {
+    /// The sensor model explains a pixel whose residual scale (MAD) is at most this many of its
+    /// noise standard deviations: the noise-model rejection then decides.
+    pub model_scale_factor: f64,
+    /// A light darker than the prediction by more than this many scales is shadowed.
+    pub dark_limit: f64,
+    /// A light brighter than the prediction by more than this many scales is a highlight.
+    pub bright_limit: f64,
+    /// A light whose predicted shading `n . l` is at or below this is treated as unlit.
+    pub min_shading: f64,
+    /// Try every minimal subset up to this many lights; trim the readings above.
+    pub exhaustive_lights: usize,
+    /// Trimmed start: fraction of readings dropped at each end.
+    pub trim: f64,
+}
+
+impl Default for Departures {
+    fn default() -> Self {
+        Departures {
+            // A residual scale within three noise deviations is one the noise model explains.
+            model_scale_factor: 3.0,
+            // Two scales either way: the iteration re-estimates the scale from the lights it
+            // keeps, so the limits trim a contaminated pixel toward its consistent core.
+            dark_limit: 2.0,
+            bright_limit: 2.0,
+            // Within 6 degrees of grazing (n . l <= 0.1) a reading is dominated by what the
+            // Lambertian model gets wrong (terminator, rough diffuse fall-off, penumbra).
+            min_shading: 0.1,
+            exhaustive_lights: 12,
+            trim: 0.2,
+        }
+    }
+}
+
+/// Rounds of rejection and refit; the inlier set settles in a few.
+const ROUNDS: usize = 10;
+
+/// The residual scale of `g` over the lights it predicts lit: `MAD_TO_SIGMA` times the median
+/// absolute residual. `scratch` is reused.
+fn residual_scale(measurements: &[Measurement], g: &Vector3<f64>, scratch: &mut Vec<f64>) -> f64 {
+    scratch.clear();
+    scratch.extend(
+        measurements
+            .iter()
+            .filter(|m| g.dot(&m.l) > 0.0)
+            .map(|m| (m.lum - g.dot(&m.l)).abs()),
+    );
+    median(scratch) * MAD_TO_SIGMA
+}
+
+fn median(values: &mut [f64]) -> f64 {
+    if values.is_empty() {
+        return f64::INFINITY;
+    }
+    let mid = values.len() / 2;
+    let (_, m, _) = values.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+    *m
+}
+
+/// The scaled normal of the least median of squares over every triple of lights.
+fn best_triple(measurements: &[Measurement], scratch: &mut Vec<f64>) -> Option<Vector3<f64>> {
+    let m = measurements.len();
+    let mut best: Option<(f64, Vector3<f64>)> = None;
+    for a in 0..m {
+        for b in a + 1..m {
+            for c in b + 1..m {
+                let [la, lb, lc] = [a, b, c].map(|k| measurements[k].l);
+                let Some(inv) =
+                    Matrix3::from_rows(&[la.transpose(), lb.transpose(), lc.transpose()])
+                        .try_inverse()
+                else {
+                    continue;
+                };
+                let g = inv
+                    * Vector3::new(
+                        measurements[a].lum,
+                        measurements[b].lum,
+                        measurements[c].lum,
+                    );
+                scratch.clear();
+                scratch.extend(measurements.iter().map(|m| (m.lum - g.dot(&m.l)).abs()));
+                let score = median(scratch);
+                if best.map_or(true, |(s, _)| score < s) {
+                    best = Some((score, g));
+                }
+            }
+        }
+    }
+    best.map(|(_, g)| g)
+}
+
+/// Least squares on the readings left after dropping `trim` of them at each end.
+fn trimmed_start(
+    measurements: &[Measurement],
+    trim: f64,
+    kept: &mut Vec<Measurement>,
+) -> Option<Vector3<f64>> {
+    kept.clear();
+    kept.extend_from_slice(measurements);
+    kept.sort_by(|a, b| a.lum.total_cmp(&b.lum));
+    let drop = ((trim * kept.len() as f64).round() as usize).min(kept.len().saturating_sub(4) / 2);
+    kept.truncate(kept.len() - drop);
+    kept.drain(..drop);
+    fit_normal_equations(kept).map(|f| f.n_lum)
+}
+
+/// The data-scaled fit of `measurements`, or `None` where the sensor model explains the
+/// residuals (or no robust start exists): the caller's noise-model rejection decides there.
+/// On success leaves the kept lights in `measurements`; `all` is a buffer.
+pub(super) fn fit(
+    tuning: &Departures,
+    measurements: &mut Vec<Measurement>,
+    all: &mut Vec<Measurement>,
+    candidate: &mut Vec<Measurement>,
+    scratch: &mut Vec<f64>,
+    least_squares: &Vector3<f64>,
+) -> Option<Fit> {
+    let m = measurements.len();
+    if m < 5 {
+        return None;
+    }
+    // The trimmed fit decides cheaply whether the noise model explains the pixel; only then
+    // are the minimal subsets searched for the start.
+    let trimmed = trimmed_start(measurements, tuning.trim, all).unwrap_or(*least_squares);
+    let scale = residual_scale(measurements, &trimmed, scratch);
+    scratch.clear();
+    scratch.extend(measurements.iter().map(|m| m.test_var.sqrt()));
+    let noise = median(scratch);
+    if scale.is_nan() || scale <= tuning.model_scale_factor * noise {
+        return None;
+    }
+    let start = if m <= tuning.exhaustive_lights {
+        best_triple(measurements, scratch)?
+    } else {
+        trimmed
+    };
+    let scale = residual_scale(measurements, &start, scratch);
+    all.clear();
+    all.extend_from_slice(measurements);
+    let mut g = start;
+    let mut scale = scale;
+    let mut result = None;
+    for _ in 0..ROUNDS {
+        let albedo = g.norm();
+        candidate.clear();
+        candidate.extend(all.iter().filter(|m| {
+            let shading = g.dot(&m.l);
+            let r = m.lum - shading;
+            shading > tuning.min_shading * albedo
+                && r >= -tuning.dark_limit * scale
+                && r <= tuning.bright_limit * scale
+        }));
+        if candidate.len() < 4 {
+            break;
+        }
+        let Some(fit) = fit_normal_equations(candidate) else {
+            break;
+        };
+        let settled = result.is_some() && same_lights(candidate, measurements);
+        std::mem::swap(measurements, candidate);
+        g = fit.n_lum;
+        result = Some(fit);
+        if settled {
+            break;
+        }
+        scale = residual_scale(measurements, &g, scratch).max(noise);
+    }
+    match result {
+        Some(mut fit) => {
+            fit.kind = if measurements.len() < all.len() {
+                PixelFit::Robust
+            } else {
+                PixelFit::LeastSquares
+            };
+            Some(fit)
+        }
+        None => {
+            measurements.clear();
+            measurements.extend_from_slice(all);
+            None
+        }
+    }
+}
+
+/// True when both hold the same lights (in the same order, as filtering `all` leaves them).
+fn same_lights(a: &[Measurement], b: &[Measurement]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.light == y.light)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Ten lights on a cone around the view, readings `albedo * n.l` times `1 + e_k` with a
+    /// deterministic +-`scatter` pattern, and a per-light noise deviation `noise`.
+    fn pixel(normal: Vector3<f64>, scatter: f64, noise: f64) -> Vec<Measurement> {
+        (0..10)
+            .map(|k| {
+                let a = k as f64 * 0.628;
+                let l = Vector3::new(a.cos() * 0.6, a.sin() * 0.6, 0.8).normalize();
+                let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
+                let lum = 0.5 * normal.dot(&l) * (1.0 + sign * scatter);
+                Measurement {
+                    l,
+                    rgb: [lum; 3],
+                    lum,
+                    var: noise * noise,
+                    test_var: noise * noise,
+                    light: k as u16,
+                }
+            })
+            .collect()
+    }
+
+    fn solve(measurements: &mut Vec<Measurement>) -> Option<Fit> {
+        let (mut all, mut kept, mut scratch) = (Vec::new(), Vec::new(), Vec::new());
+        let ls = fit_normal_equations(measurements).unwrap().n_lum;
+        fit(
+            &Departures::default(),
+            measurements,
+            &mut all,
+            &mut kept,
+            &mut scratch,
+            &ls,
+        )
+    }
+
+    #[test]
+    fn drops_a_shadow_and_a_highlight_under_model_error() {
+        let normal = Vector3::new(0.2, -0.1, 0.97).normalize();
+        // 1 % model error, far above the noise (1e-5): the data set the scale.
+        let mut m = pixel(normal, 0.01, 1e-5);
+        m[3].lum *= 0.1;
+        m[7].lum += 0.3;
+        let fit = solve(&mut m).expect("the noise model does not explain 1 % scatter");
+        let kept: Vec<u16> = m.iter().map(|m| m.light).collect();
+        assert!(!kept.contains(&3) && !kept.contains(&7), "{kept:?}");
+        assert_eq!(fit.kind, PixelFit::Robust);
+        // A 1 % reading error moves the normal by about 0.01 rad / sqrt(lights / 3) ~ 0.33
+        // deg with 8 lights; 4x that bounds it.
+        let angle = fit.n_lum.normalize().angle(&normal).to_degrees();
+        assert!(angle < 1.3, "{angle}");
+    }
+
+    #[test]
+    fn leaves_pixels_the_noise_model_explains_to_it() {
+        let normal = Vector3::new(-0.3, 0.2, 0.93).normalize();
+        // The scatter (0.1 % of ~0.45) is within the noise deviation (1e-3).
+        let mut m = pixel(normal, 0.001, 1e-3);
+        m[5].lum *= 0.2;
+        assert!(solve(&mut m).is_none());
+        assert_eq!(m.len(), 10);
+    }
+}
