@@ -17,7 +17,8 @@ use super::progress::Bars;
 pub struct DeriveArgs {
     /// A solve's output folder (report.json, normal.exr, albedo.exr, confidence.exr).
     solve_dir: PathBuf,
-    /// Output folder (default: SOLVE_DIR/derived).
+    /// Output folder (default: SOLVE_DIR-derived beside the solve; never inside it, since the
+    /// solve is this run's input).
     #[arg(long)]
     out: Option<PathBuf>,
     /// Replace an existing derive folder.
@@ -124,10 +125,15 @@ fn parse_tile(text: &str) -> anyhow::Result<TileChoice> {
 
 pub fn derive(args: &DeriveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let options = args.flags.options()?;
-    let out = args
-        .out
-        .clone()
-        .unwrap_or_else(|| args.solve_dir.join("derived"));
+    let out = args.out.clone().unwrap_or_else(|| {
+        let mut name = args
+            .solve_dir
+            .file_name()
+            .map(|n| n.to_os_string())
+            .unwrap_or_else(|| "solve".into());
+        name.push("-derived");
+        args.solve_dir.with_file_name(name)
+    });
     let report = derive::derive(
         DeriveSource::SolveDir(&args.solve_dir),
         &out,

@@ -231,12 +231,18 @@ pub fn derive(
     let total = Instant::now();
     let mut timings = BTreeMap::new();
     let start = Instant::now();
+    // The solve folder is this run's input: the output may not be, hold or sit inside it.
+    let input_dir = match &source {
+        DeriveSource::SolveDir(dir) => Some(dir.to_path_buf()),
+        DeriveSource::Maps(_) => None,
+    };
+    let inputs: Vec<&Path> = input_dir.iter().map(|p| p.as_path()).collect();
     let mut maps = match source {
         DeriveSource::SolveDir(dir) => source::load(dir)?,
         DeriveSource::Maps(m) => m,
     };
     timings.insert("load".to_string(), start.elapsed().as_secs_f64());
-    let stage = StagedDir::create(out, force, DERIVE_REPORT)?;
+    let stage = StagedDir::create(out, force, &inputs)?;
     let mut report = DeriveReport {
         scale_source: maps.scale_source.clone(),
         ..DeriveReport::default()
@@ -332,7 +338,7 @@ pub fn derive(
     report.timings_s = timings;
     let json = serde_json::to_string_pretty(&report).expect("a derive report always serialises");
     write_atomic(&dir.join(DERIVE_REPORT), json.as_bytes())?;
-    stage.commit(force, DERIVE_REPORT)?;
+    stage.commit(force, &inputs)?;
     Ok(report)
 }
 
