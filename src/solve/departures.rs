@@ -189,7 +189,14 @@ pub(super) fn fit(
         }
         scale = residual_scale(measurements, &g, scratch).max(noise);
     }
-    match result {
+    // Judged on the lights the fit kept: where the noise model explains their residuals, the
+    // pixel's departures are outliers against a model that holds (cast shadows on a
+    // Lambertian surface), and the noise-model rejection judges them more finely than a scale
+    // taken from the data (the early test above can only look at all lights, whose MAD a
+    // contaminated start inflates).
+    let explained = result.is_some()
+        && residual_scale(measurements, &g, scratch) <= tuning.model_scale_factor * noise;
+    match result.filter(|_| !explained) {
         Some(mut fit) => {
             fit.kind = if measurements.len() < all.len() {
                 PixelFit::Robust

@@ -119,6 +119,8 @@ pub(super) struct Buffers {
     usable: Vec<Measurement>,
     /// The data-scaled fit's usable lights, candidate inliers and residuals.
     departures_all: Vec<Measurement>,
+    /// All usable lights while the noise-model rejection and the data-scaled fit are compared.
+    noise_usable: Vec<Measurement>,
     departures_kept: Vec<Measurement>,
     residuals: Vec<f64>,
 }
@@ -155,22 +157,6 @@ pub(super) fn refine(
     let options = &context.kernel.options().robust;
     let chi = context.kernel.chi_square();
     // A configured sheen model is the user's account of the model error: it decides there.
-    let data_scaled = options.sheen.is_none();
-    if let Some(fit) = data_scaled
-        .then(|| {
-            departures::fit(
-                &departures::Departures::default(),
-                measurements,
-                &mut buffers.departures_all,
-                &mut buffers.departures_kept,
-                &mut buffers.residuals,
-                &least_squares.n_lum,
-            )
-        })
-        .flatten()
-    {
-        return fit;
-    }
     let Some(start) = weighted_fit(chi, measurements) else {
         return least_squares;
     };
@@ -186,8 +172,7 @@ pub(super) fn refine(
         if lambertian {
             return all_lights;
         }
-        return lambertian_rejection(context, measurements, buffers, start, condition)
-            .unwrap_or(least_squares);
+        return noise_or_data_scaled(context, measurements, buffers, start, least_squares);
     };
     // The sheen lobe brightens many lights smoothly: fit it to all lights before treating any
     // as an outlier.
@@ -214,6 +199,66 @@ pub(super) fn refine(
         None => lambertian_rejection(context, measurements, buffers, start, condition)
             .unwrap_or(least_squares),
     }
+}
+
+/// The Lambertian pixel the noise model does not explain with all lights. Where the noise-model
+/// rejection finds lights that pass the chi-square test (cast shadows on a surface the model
+/// holds for), it judges each light in units of sensor noise, more finely than any scale taken
+/// from the pixel's own residuals; only where it does not (the model error of real surfaces)
+/// the data-scaled fit decides. A configured sheen model never comes here: it is the user's
+/// account of the model error.
+fn noise_or_data_scaled(
+    context: &Context,
+    measurements: &mut Vec<Measurement>,
+    buffers: &mut Buffers,
+    start: WeightedFit,
+    least_squares: Fit,
+) -> Fit {
+    let chi = context.kernel.chi_square();
+    let condition = least_squares.condition;
+    let mut usable = std::mem::take(&mut buffers.noise_usable);
+    usable.clear();
+    usable.extend_from_slice(measurements);
+    let usable_count = usable.len();
+    let noise = reject_outliers(context, measurements, buffers, start);
+    if let Some(weighted) = noise {
+        if chi.accepts_statistic(weighted.chi2, measurements.len()) {
+            buffers.noise_usable = usable;
+            let rejected = measurements.len() < usable_count;
+            return weighted.into_fit(chi, measurements, condition, rejected);
+        }
+        // Keep the rejection's outcome while the data-scaled fit tries.
+        let kept = measurements.clone();
+        measurements.clear();
+        measurements.extend_from_slice(&usable);
+        let data_scaled = departures::fit(
+            &departures::Departures::default(),
+            measurements,
+            &mut buffers.departures_all,
+            &mut buffers.departures_kept,
+            &mut buffers.residuals,
+            &least_squares.n_lum,
+        );
+        buffers.noise_usable = usable;
+        if let Some(fit) = data_scaled {
+            return fit;
+        }
+        *measurements = kept;
+        let rejected = measurements.len() < usable_count;
+        return weighted.into_fit(chi, measurements, condition, rejected);
+    }
+    measurements.clear();
+    measurements.extend_from_slice(&usable);
+    buffers.noise_usable = usable;
+    departures::fit(
+        &departures::Departures::default(),
+        measurements,
+        &mut buffers.departures_all,
+        &mut buffers.departures_kept,
+        &mut buffers.residuals,
+        &least_squares.n_lum,
+    )
+    .unwrap_or(least_squares)
 }
 
 /// At most this many rounds of lobe removal, rejection and sheen refit. Each round's normal
