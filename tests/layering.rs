@@ -75,6 +75,7 @@ const KNOWN_CYCLIC: &[&str] = &[
     "raw::decode",
     "raw::guard",
     "solve::adaptive",
+    "solve::departures",
     "solve::fast",
     "solve::kernel",
     "solve::robust",

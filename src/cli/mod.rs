@@ -267,14 +267,14 @@ struct SolveFlags {
     /// Do not subtract the set's all-off (dark) frame.
     #[arg(long)]
     no_dark: bool,
-    /// Kernel precision. Default: the streaming f32 kernel with tiles of 0.01 degrees (its
-    /// normals within 0.02 degrees plus single-precision round-off of the exact kernel's) for
-    /// the ls and adaptive estimators, the exact kernel for robust and svd. f64 without --tile-tolerance: the
-    /// exact per-pixel kernel everywhere.
+    /// Kernel precision. Default (and f64): the exact per-pixel kernel, which also predicts
+    /// each pixel's error. f32 alone: the fast kernel, streaming f32 with tiles of 0.01
+    /// degrees (normals within 0.02 degrees plus single-precision round-off of the exact
+    /// kernel's) for the ls and adaptive estimators; robust and svd keep the exact kernel.
     #[arg(long, value_enum)]
     precision: Option<PrecisionArg>,
     /// Share light coefficients across tiles where that moves normals by at most this many
-    /// degrees (streaming kernel; default 0.01 unless --precision f64 is given).
+    /// degrees (streaming kernel; 0.01 with --precision f32 alone).
     #[arg(long, value_name = "DEG", value_parser = values::positive, allow_negative_numbers = true)]
     tile_tolerance: Option<f64>,
     /// PNG deflate effort: fast (default) or best (smaller files for archives, much slower).
@@ -304,7 +304,7 @@ enum PngCompressionArg {
     Best,
 }
 
-#[derive(Clone, Copy, ValueEnum)]
+#[derive(Clone, Copy, PartialEq, ValueEnum)]
 enum PrecisionArg {
     F64,
     F32,
@@ -360,9 +360,11 @@ impl SolveFlags {
             },
             ..SolveOptions::default()
         };
-        // No kernel asked for: the default kernel (streaming f32 and tiles where the estimator
-        // allows it, within solve::default_kernel_tolerance_deg of the exact kernel).
-        let options = if self.precision.is_none() && self.tile_tolerance.is_none() {
+        // `--precision f32` alone: the fast kernel (streaming f32 and tiles where the estimator
+        // allows it, within solve::default_kernel_tolerance_deg of the exact kernel). No kernel
+        // asked for: the exact kernel, the one that predicts each pixel's error from the noise.
+        let options = if self.precision == Some(PrecisionArg::F32) && self.tile_tolerance.is_none()
+        {
             options.with_default_kernel()
         } else {
             options
