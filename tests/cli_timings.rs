@@ -7,7 +7,7 @@ use std::sync::OnceLock;
 
 mod common;
 
-use common::{json, psscan, s};
+use common::{json, psscan, s, stderr};
 use serde_json::Value;
 
 const W: usize = 192;
@@ -186,7 +186,25 @@ fn the_default_kernel_is_within_its_tolerance_of_the_exact_one() {
         }
         assert!(worst > 0.0, "the two kernels cannot agree to the bit");
     }
-    // The robust estimator keeps the exact kernel even when the fast one is asked for.
-    let (robust, _dir) = solve(&["--estimator", "robust", "--precision", "f32"]);
-    assert_eq!(robust["options"]["precision"], "f64");
+    // The robust estimator fits with the exact kernel only: asking it for the fast one is
+    // refused with what to do instead.
+    let out = tempfile::tempdir().unwrap();
+    let maps = out.path().join("maps");
+    let refused = psscan(&[
+        "solve",
+        s(set("dng")),
+        "--out",
+        s(&maps),
+        "--estimator",
+        "robust",
+        "--precision",
+        "f32",
+    ]);
+    assert_eq!(refused.status.code(), Some(1));
+    assert!(
+        stderr(&refused).contains("exact kernel"),
+        "{}",
+        stderr(&refused)
+    );
+    assert!(!maps.exists());
 }

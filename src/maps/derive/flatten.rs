@@ -231,7 +231,7 @@ mod tests {
         let kept = e_flat / e_truth;
         eprintln!("flatten: tilt {before:.3} deg -> {after:.4} deg mean; energy above cut-off kept {kept:.4}");
         assert!(
-            kept >= 0.95 && kept <= 1.05,
+            (0.95..=1.05).contains(&kept),
             "energy above cut-off kept: {kept}"
         );
     }

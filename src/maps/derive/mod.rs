@@ -182,7 +182,7 @@ pub enum DeriveSource<'a> {
     /// A finished solve folder (report.json, normal.exr, albedo.exr, confidence.exr).
     SolveDir(&'a Path),
     /// Maps already in memory (the `solve` command, tests).
-    Maps(SolvedMaps),
+    Maps(Box<SolvedMaps>),
 }
 
 /// What `derive` did: figures per step, seconds per step, the files written.
@@ -239,7 +239,7 @@ pub fn derive(
     let inputs: Vec<&Path> = input_dir.iter().map(|p| p.as_path()).collect();
     let mut maps = match source {
         DeriveSource::SolveDir(dir) => source::load(dir)?,
-        DeriveSource::Maps(m) => m,
+        DeriveSource::Maps(m) => *m,
     };
     timings.insert("load".to_string(), start.elapsed().as_secs_f64());
     let stage = StagedDir::create(out, force, &inputs)?;
