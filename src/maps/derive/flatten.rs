@@ -156,20 +156,7 @@ mod tests {
     }
 
     fn planes(w: usize, h: usize, f: impl Fn(f64, f64) -> [f64; 3]) -> [Plane; 3] {
-        let mut out = [
-            Plane::new(w, h, 0.0),
-            Plane::new(w, h, 0.0),
-            Plane::new(w, h, 0.0),
-        ];
-        for y in 0..h {
-            for x in 0..w {
-                let n = f(x as f64, y as f64);
-                for c in 0..3 {
-                    out[c].data[y * w + x] = n[c] as f32;
-                }
-            }
-        }
-        out
+        super::super::normal_field(w, h, |x, y| f(x as f64, y as f64))
     }
 
     /// Energy of a slope plane at spatial frequencies above `cutoff` (cycles per pixel).

@@ -279,22 +279,7 @@ pub fn ggx_radiance(alpha: f64, n: [f64; 3], v: [f64; 3], l: [f64; 3], f0: f64) 
 mod tests {
     use super::*;
 
-    fn field(w: usize, h: usize, f: impl Fn(usize, usize) -> [f64; 3]) -> [Plane; 3] {
-        let mut out = [
-            Plane::new(w, h, 0.0),
-            Plane::new(w, h, 0.0),
-            Plane::new(w, h, 0.0),
-        ];
-        for y in 0..h {
-            for x in 0..w {
-                let n = f(x, y);
-                for c in 0..3 {
-                    out[c].data[y * w + x] = n[c] as f32;
-                }
-            }
-        }
-        out
-    }
+    use super::super::normal_field as field;
 
     #[test]
     fn a_uniform_field_keeps_the_base_roughness_at_every_level() {

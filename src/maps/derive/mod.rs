@@ -357,3 +357,22 @@ fn list_outputs(stage: &Path, out: &Path) -> Result<BTreeMap<String, PathBuf>> {
 pub fn fitted_sheen(maps: &SolvedMaps) -> Option<SheenModel> {
     maps.sheen.filter(|_| maps.sheen_pixels > 0)
 }
+
+/// Test helper: three planes (a normal field) of `w` x `h` from a function of the pixel.
+#[cfg(test)]
+pub(crate) fn normal_field(w: usize, h: usize, f: impl Fn(usize, usize) -> [f64; 3]) -> [Plane; 3] {
+    let mut out = [
+        Plane::new(w, h, 0.0),
+        Plane::new(w, h, 0.0),
+        Plane::new(w, h, 0.0),
+    ];
+    for y in 0..h {
+        for x in 0..w {
+            let n = f(x, y);
+            for c in 0..3 {
+                out[c].data[y * w + x] = n[c] as f32;
+            }
+        }
+    }
+    out
+}
