@@ -20,6 +20,7 @@ pub mod error;
 pub mod eval;
 pub mod fsutil;
 pub mod maps;
+pub mod math;
 pub mod offline;
 pub mod pipeline;
 pub mod plane;

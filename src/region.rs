@@ -412,10 +412,7 @@ mod tests {
             exposure: 1.0,
             mask,
         };
-        let options = SolveOptions {
-            estimator: crate::solve::Estimator::LeastSquares,
-            ..SolveOptions::default()
-        };
+        let options = SolveOptions::exact(crate::solve::Estimator::LeastSquares);
         solve(&input, &options, &Silent).unwrap()
     }
 

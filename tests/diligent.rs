@@ -36,7 +36,7 @@ fn bunny(variant: &str) -> PathBuf {
 /// default, adaptive, is compared with the published robust methods in tests/estimators.rs).
 fn least_squares() -> SolveJob {
     let mut job = SolveJob::default();
-    job.options.estimator = solve::Estimator::LeastSquares;
+    job.options.kernel = solve::KernelChoice::exact(solve::Estimator::LeastSquares);
     job
 }
 

@@ -14,8 +14,8 @@ use psscan::progress::Silent;
 use psscan::raw::Levels;
 use psscan::rig::Rig;
 use psscan::solve::{
-    self, Estimator, LightSource, NoiseModel, PixelFit, PixelStatus, Precision, SheenModel,
-    SolveInput, SolveOptions, SolveResult,
+    self, Estimator, KernelChoice, LightSource, Method, NoiseModel, PixelFit, PixelStatus,
+    Precision, SheenModel, SolveInput, SolveOptions, SolveResult,
 };
 use psscan::synth::{expose, Noise, Scene, SceneOptions, Sheen, Textile};
 
@@ -97,10 +97,7 @@ fn render_with(
 }
 
 fn options(estimator: Estimator, sheen: bool) -> SolveOptions {
-    let mut options = SolveOptions {
-        estimator,
-        ..SolveOptions::default()
-    };
+    let mut options = SolveOptions::exact(estimator);
     options.robust.sheen = sheen.then(SheenModel::default);
     options
 }
@@ -108,8 +105,14 @@ fn options(estimator: Estimator, sheen: bool) -> SolveOptions {
 /// `options` on the streaming kernel: f32, light coefficients shared across tiles (0.01 deg).
 fn fast_options(estimator: Estimator, sheen: bool) -> SolveOptions {
     SolveOptions {
-        precision: Precision::F32,
-        tile_tolerance_deg: Some(0.01),
+        kernel: KernelChoice::new(
+            estimator,
+            Method::NormalEquations,
+            Precision::F32,
+            Some(0.01),
+            false,
+        )
+        .expect("the streaming kernel runs the least-squares and adaptive estimators"),
         ..options(estimator, sheen)
     }
 }

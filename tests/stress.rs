@@ -31,8 +31,8 @@ use psscan::eval::angle_deg;
 use psscan::plane::{Frames, LightFrame, Mask, RgbPlanes, SensorWindow};
 use psscan::progress::Silent;
 use psscan::solve::{
-    self, Estimator, LightSource, Method, NoiseModel, PixelStatus, SolveInput, SolveOptions,
-    SolveResult,
+    self, Estimator, KernelChoice, LightSource, Method, NoiseModel, PixelStatus, SolveInput,
+    SolveOptions, SolveResult,
 };
 
 const CASES: u32 = 128;
@@ -192,10 +192,7 @@ fn solve_case(case: &Case, frames: &Frames, estimator: Estimator) -> SolveResult
         exposure: 1.0,
         mask: None,
     };
-    let options = SolveOptions {
-        estimator,
-        ..SolveOptions::default()
-    };
+    let options = SolveOptions::exact(estimator);
     solve::solve(&input, &options, &Silent).expect("valid inputs solve")
 }
 
@@ -386,8 +383,10 @@ proptest! {
                 mask: None,
             };
             let options = SolveOptions {
-                method,
-                estimator: Estimator::LeastSquares,
+                kernel: KernelChoice::Exact {
+                    method,
+                    estimator: Estimator::LeastSquares,
+                },
                 ..SolveOptions::default()
             };
             let result = solve::solve(&input, &options, &Silent).unwrap();

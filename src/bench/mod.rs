@@ -22,8 +22,8 @@ use crate::progress::{Progress, Silent};
 use crate::raw::Levels;
 use crate::rig::Rig;
 use crate::solve::{
-    self, Estimator, LightSource, Method, NoiseModel, PixelStatus, Precision, SolveInput,
-    SolveOptions, SolveResult,
+    self, Estimator, KernelChoice, LightSource, Method, NoiseModel, PixelStatus, Precision,
+    SolveInput, SolveOptions, SolveResult,
 };
 use crate::synth::{expose, Noise, Scene, SceneOptions, Sheen, Textile};
 
@@ -132,15 +132,14 @@ pub const FAST_ADAPTIVE: &str = "adaptive fast f32 tiled";
 /// The variants every scene is solved with.
 pub fn variants() -> Vec<Variant> {
     let base = SolveOptions {
-        estimator: Estimator::LeastSquares,
         predict_error: false,
-        ..SolveOptions::default()
+        ..SolveOptions::exact(Estimator::LeastSquares)
     };
     let v = |name: &str, options: SolveOptions| Variant {
         name: name.into(),
-        large: options.method != Method::Svd
-            && options.estimator != Estimator::Robust
-            && (options.tile_tolerance_deg.is_some() || !options.streaming())
+        large: options.kernel.method() != Method::Svd
+            && options.estimator() != Estimator::Robust
+            && (options.kernel.tile_tolerance_deg().is_some() || !options.streaming())
             && !options.predict_error,
         reuse_outputs: false,
         speed: name.starts_with(FAST_LS),
@@ -164,10 +163,15 @@ pub fn variants() -> Vec<Variant> {
         }
     };
     let streaming = |precision, tiles: Option<f64>, normal_only| SolveOptions {
-        precision,
-        tile_tolerance_deg: tiles,
+        kernel: KernelChoice::new(
+            Estimator::LeastSquares,
+            Method::NormalEquations,
+            precision,
+            tiles,
+            true,
+        )
+        .expect("the bench's streaming variants are valid"),
         normal_only,
-        streaming_kernel: true,
         ..base.clone()
     };
     let tiles = Some(TILE_TOLERANCE_DEG);
@@ -179,17 +183,21 @@ pub fn variants() -> Vec<Variant> {
         .map(|estimator| {
             v(
                 &format!("{} f64 per-pixel (exact kernel)", estimator.name()),
-                SolveOptions {
-                    estimator,
-                    ..SolveOptions::default()
-                },
+                SolveOptions::exact(estimator),
             )
         })
         .collect();
     estimators.push(v(
         FAST_ADAPTIVE,
         SolveOptions {
-            estimator: Estimator::Adaptive,
+            kernel: KernelChoice::new(
+                Estimator::Adaptive,
+                Method::NormalEquations,
+                Precision::F32,
+                tiles,
+                true,
+            )
+            .expect("a valid streaming kernel"),
             ..streaming(Precision::F32, tiles, false)
         },
     ));
@@ -199,7 +207,10 @@ pub fn variants() -> Vec<Variant> {
         v(
             "svd f64 per-pixel",
             SolveOptions {
-                method: Method::Svd,
+                kernel: KernelChoice::Exact {
+                    method: Method::Svd,
+                    estimator: Estimator::LeastSquares,
+                },
                 ..base.clone()
             },
         ),
@@ -457,8 +468,8 @@ pub fn run(options: &BenchOptions, progress: &dyn Progress) -> Result<BenchResul
                 if !variant.scenes.is_empty() && !variant.scenes.contains(&kind) {
                     continue;
                 }
-                let slow =
-                    !variant.options.streaming() || variant.options.tile_tolerance_deg.is_none();
+                let slow = !variant.options.streaming()
+                    || variant.options.kernel.tile_tolerance_deg().is_none();
                 let runs = if variant.single_run || (slow && mp > LARGE_MP) {
                     1
                 } else {

@@ -270,10 +270,7 @@ pub fn flatness(
     };
     // Plain least squares: a white sheet has no shadows or sheen to reject, and the noise
     // tail above is the least-squares estimate's.
-    let options = SolveOptions {
-        estimator: Estimator::LeastSquares,
-        ..SolveOptions::default()
-    };
+    let options = SolveOptions::exact(Estimator::LeastSquares);
     let result = solve::solve(&input, &options, progress)?;
     let up = Vector3::z();
     let mut angles = Vec::new();

@@ -24,7 +24,8 @@ use psscan::raw::{DevelopOptions, Resolution};
 use psscan::region::{Background, Roi};
 use psscan::rig::Rig;
 use psscan::solve::{
-    Estimator, LightModel, Method, Precision, RobustOptions, SheenModel, SolveOptions,
+    Estimator, KernelChoice, LightModel, Method, Precision, RobustOptions, SheenModel,
+    SolveOptions, DEFAULT_TILE_TOLERANCE_DEG,
 };
 use psscan::synth::{FrameEncoding, Sheen, SynthSpec};
 
@@ -332,23 +333,31 @@ enum LightModelArg {
 
 impl SolveFlags {
     fn job(&self) -> anyhow::Result<SolveJob> {
+        let method = match self.method {
+            MethodArg::Fast => Method::NormalEquations,
+            MethodArg::Svd => Method::Svd,
+        };
+        let precision = match (self.precision, self.tile_tolerance) {
+            (Some(PrecisionArg::F64), _) => Precision::F64,
+            (Some(PrecisionArg::F32), _) | (None, Some(_)) => Precision::F32,
+            (None, None) => Precision::F64,
+        };
+        // `--precision f32` alone: the fast kernel, streaming f32 with tiles (within
+        // solve::default_kernel_tolerance_deg of the exact kernel). The robust estimator and the
+        // SVD method have no streaming form, so with them the flag is refused by name. No kernel
+        // asked for: the exact kernel, the one that predicts each pixel's error from the noise.
+        let tiles = match (self.precision, self.tile_tolerance) {
+            (Some(PrecisionArg::F32), None) => Some(DEFAULT_TILE_TOLERANCE_DEG),
+            (_, tiles) => tiles,
+        };
+        let kernel = KernelChoice::new(self.estimator, method, precision, tiles, false)?;
         let options = SolveOptions {
-            method: match self.method {
-                MethodArg::Fast => Method::NormalEquations,
-                MethodArg::Svd => Method::Svd,
-            },
+            kernel,
             light_model: match self.light_model {
                 LightModelArg::Near => LightModel::Near,
                 LightModelArg::Distant => LightModel::Distant,
             },
-            precision: match (self.precision, self.tile_tolerance) {
-                (Some(PrecisionArg::F64), _) => Precision::F64,
-                (Some(PrecisionArg::F32), _) | (None, Some(_)) => Precision::F32,
-                (None, None) => Precision::F64,
-            },
-            tile_tolerance_deg: self.tile_tolerance,
             normal_only: self.normal_only,
-            estimator: self.estimator,
             robust: RobustOptions {
                 sheen: self.sheen_fit.as_deref().map(|v| SheenModel {
                     f0: [v[0]; 3],
@@ -359,15 +368,6 @@ impl SolveFlags {
                 ..RobustOptions::default()
             },
             ..SolveOptions::default()
-        };
-        // `--precision f32` alone: the fast kernel (streaming f32 and tiles where the estimator
-        // allows it, within solve::default_kernel_tolerance_deg of the exact kernel). No kernel
-        // asked for: the exact kernel, the one that predicts each pixel's error from the noise.
-        let options = if self.precision == Some(PrecisionArg::F32) && self.tile_tolerance.is_none()
-        {
-            options.with_default_kernel()
-        } else {
-            options
         };
         Ok(SolveJob {
             region: RegionJob {

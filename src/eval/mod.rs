@@ -9,6 +9,7 @@ pub mod subsets;
 pub mod table;
 pub mod trimmed;
 
+pub use crate::math::angle_deg;
 pub use run::{evaluate, EvalOptions, EvalReport, EvalSet, Row};
 
 use nalgebra::Vector3;
@@ -76,11 +77,6 @@ pub struct TruthComparison {
     pub normal_error_deg: Stats,
     /// `|albedo - true| / true`, per channel, over solved pixels.
     pub albedo_rel_error: Stats,
-}
-
-/// Angle between two vectors in degrees, accurate for tiny angles (atan2 of cross and dot).
-pub fn angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
-    a.cross(b).norm().atan2(a.dot(b)).to_degrees()
 }
 
 /// Per-pixel angular error (degrees) of the solved normals; `None` where not solved.
@@ -201,13 +197,5 @@ mod tests {
             let mean = sorted.iter().sum::<f64>() / n as f64;
             assert!((s.mean - mean).abs() <= 1e-12 * mean.abs().max(1.0), "{n}");
         }
-    }
-
-    #[test]
-    fn tiny_angles_are_accurate() {
-        let a = Vector3::new(0.0, 0.0, 1.0);
-        let t = 1e-7f64;
-        let b = Vector3::new(t.sin(), 0.0, t.cos());
-        assert!((angle_deg(&a, &b) - t.to_degrees()).abs() < 1e-15);
     }
 }

@@ -122,7 +122,7 @@ pub fn evaluate(
                 mask: set.mask.as_ref(),
             };
             let solve_options = SolveOptions {
-                estimator,
+                kernel: options.solve.kernel.with_estimator(estimator)?,
                 ..options.solve.clone()
             };
             let start = Instant::now();

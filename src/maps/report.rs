@@ -223,7 +223,7 @@ fn model_test_warning(
     options: &SolveOptions,
     solved: usize,
 ) -> Option<String> {
-    if options.estimator != Estimator::Adaptive || solved == 0 {
+    if options.estimator() != Estimator::Adaptive || solved == 0 {
         return None;
     }
     let share = result.escalated as f64 / solved as f64;

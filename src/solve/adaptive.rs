@@ -12,85 +12,15 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use nalgebra::Vector3;
 use rayon::prelude::*;
 
-use super::fast::{self, Real};
-use super::kernel::{Kernel, Measurement, RowOut, Scratch};
-use super::robust::RobustOptions;
+use super::chi_square::ChiSquare;
+use super::fast;
+use super::kernel::{Kernel, RowOut, Scratch};
+use super::lanes::Real;
+use super::options::{Precision, SolveOptions};
 use super::{PixelFit, PixelStatus, SolveResult, LUMINANCE_WEIGHTS};
 use crate::progress::Progress;
-
-/// The chi-square test of a luminance fit against the noise model.
-pub(super) struct ChiSquare {
-    sigma: f64,
-    relative_model_error: f64,
-}
-
-impl ChiSquare {
-    pub fn new(options: &RobustOptions) -> Self {
-        ChiSquare {
-            sigma: options.significance_sigma,
-            relative_model_error: options.relative_model_error,
-        }
-    }
-
-    /// Sets each measurement's test variance: sensor noise, model error, and the f32
-    /// precision of the stored planes relative to the pixel's brightest reading (so that
-    /// noise-free inputs have a finite test, and no reading's weight outruns the precision
-    /// the solve's inputs have).
-    pub fn prepare(&self, measurements: &mut [Measurement]) {
-        let brightest = measurements.iter().fold(0.0f64, |a, m| a.max(m.lum.abs()));
-        let precision = (brightest * f32::EPSILON as f64).powi(2) / 12.0 + f64::MIN_POSITIVE;
-        for m in measurements {
-            m.test_var = m.var + (self.relative_model_error * m.lum).powi(2) + precision;
-        }
-    }
-
-    /// The test variance of `m` (set by `prepare`).
-    #[inline]
-    pub fn variance(&self, m: &Measurement) -> f64 {
-        m.test_var
-    }
-
-    /// `sum_k r_k^2 / s_k^2` for the luminance fit `n_lum`.
-    pub fn statistic(&self, measurements: &[Measurement], n_lum: &Vector3<f64>) -> f64 {
-        measurements
-            .iter()
-            .map(|m| (m.lum - n_lum.dot(&m.l)).powi(2) / self.variance(m))
-            .sum()
-    }
-
-    /// The statistic's upper limit for `dof` degrees of freedom at `sigma` (Wilson-Hilferty:
-    /// `(X/k)^(1/3)` is nearly normal with mean `1 - 2/(9k)` and variance `2/(9k)`).
-    pub fn threshold(&self, dof: usize) -> f64 {
-        let k = dof as f64;
-        let v = 2.0 / (9.0 * k);
-        k * (1.0 - v + self.sigma * v.sqrt()).powi(3)
-    }
-
-    /// True when a Lambertian surface explains the measurements within the noise (always,
-    /// without redundant lights: three lights fit any normal exactly). `n_lum` is the
-    /// least-squares fit: where its statistic passes, so does the minimum; otherwise the test
-    /// is decided on the weighted fit, the one whose statistic follows the chi-square
-    /// distribution. (The unweighted fit's statistic is inflated where the lights' variances
-    /// differ: with the standard rig's photon noise, tested on it, 1.8 % of clean pixels
-    /// failed at 3 sigma instead of 0.13 %.)
-    pub fn accepts(&self, measurements: &[Measurement], n_lum: &Vector3<f64>) -> bool {
-        let lights = measurements.len();
-        if lights <= 3 || self.accepts_statistic(self.statistic(measurements, n_lum), lights) {
-            return true;
-        }
-        super::robust::weighted_statistic(self, measurements)
-            .is_some_and(|chi2| self.accepts_statistic(chi2, lights))
-    }
-
-    /// True when `statistic` of a fit to `lights` lights is within the noise.
-    pub fn accepts_statistic(&self, statistic: f64, lights: usize) -> bool {
-        let dof = lights.saturating_sub(3);
-        dof == 0 || statistic <= self.threshold(dof)
-    }
-}
 
 /// The streaming kernel's screen for the adaptive estimator: a chi-square test on the fast
 /// least-squares residual against an upper bound of each light's noise variance.
@@ -104,13 +34,14 @@ impl ChiSquare {
 /// sum_k r_k^2 / s_k^2`, the least-squares fit's statistic, whose mean under a Lambertian
 /// pixel is about `m - 3`: the screen's threshold is the exact test's chi-square quantile
 /// (3 sigma, 0.13 % false alarms for the weighted fit) applied to a statistic that is smaller
-/// by `s_k^2 / v_max` per light, so on clean pixels it fails rarely (measured 0.03-0.04 % on
-/// the Lambertian bench scene, against 0.18 % for the exact test). A pixel the screen does not
+/// by `s_k^2 / v_max` per light, so on clean pixels it fails more rarely than the exact test
+/// (docs/solve.md). A pixel the screen does not
 /// pass goes to the exact kernel, whose own test (exact variances, weighted fit) decides
 /// whether the robust fit runs, so the screen can only make escalation rarer. The price is
 /// power: a deviation must be larger by `sqrt(v_max / s_k^2)` than the exact test needs; cast
 /// shadows and highlights are tens of sigma, and on the cast-shadow scene the streaming
-/// adaptive estimator's error equals the exact one's (0.552 deg both, tests/estimators.rs).
+/// adaptive estimator's error matched the exact one's (docs/solve.md; `tests/estimators.rs`
+/// holds both to the same bounds).
 ///
 /// Two slack terms keep noise-free inputs from failing: the rounding of `S = |I|^2 - N . b` in
 /// the kernel's precision (at most `2 (m + cond^2) u |I|^2`, `|I|^2 <= m rho^2`), and the
@@ -139,7 +70,7 @@ pub(super) struct Screen {
 impl Screen {
     pub fn new(
         chi: &ChiSquare,
-        options: &super::SolveOptions,
+        options: &SolveOptions,
         input: &super::SolveInput,
         illumination: &super::Illumination,
         tile_error_deg: f64,
@@ -163,9 +94,9 @@ impl Screen {
             normal_only: options.normal_only,
             relative_var: options.robust.relative_model_error.powi(2)
                 + (f32::EPSILON as f64).powi(2) / 12.0,
-            roundoff: match options.precision {
-                super::Precision::F32 => f32::EPSILON as f64 / 2.0,
-                super::Precision::F64 => f64::EPSILON / 2.0,
+            roundoff: match options.kernel.precision() {
+                Precision::F32 => f32::EPSILON as f64 / 2.0,
+                Precision::F64 => f64::EPSILON / 2.0,
             },
             tile_rad: tile_error_deg.to_radians(),
             threshold: (0..=lights)
@@ -466,7 +397,7 @@ pub(super) fn solve_streaming<T: Real>(
             row_fn(ctx, y, &mut row, fast_scratch);
             screen.screen_row(&row, y, failed);
             for &x in failed.iter() {
-                fast::reset_pixel(&mut row, x, PixelStatus::OutsideMask);
+                row.reset(x, PixelStatus::OutsideMask);
                 match illumination.point(x, y) {
                     Some(point) => {
                         kernel.solve_pixel(y * width + x, &point, exact_scratch, &mut row, x)

@@ -14,7 +14,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::kernel::{fit_normal_equations, Fit, Measurement};
+use super::measure::{fit_normal_equations, Fit, Measurement};
 use super::PixelFit;
 
 /// Consistency factor of the MAD for a normal distribution.

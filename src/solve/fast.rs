@@ -21,116 +21,16 @@
 use rayon::prelude::*;
 
 use super::kernel::{Kernel, RowOut, Scratch};
+use super::lanes::{
+    apply, dot, frob_sq, load, madd, mix, prefetch, store, subtract_if, vectors, Real, LANES,
+    PREFETCH_AHEAD, V,
+};
 use super::lights::Illumination;
+use super::options::SolveOptions;
 use super::tiles::{self, exact_coefficients, TileGrid};
-use super::{PixelFit, PixelStatus, SolveInput, SolveOptions, SolveResult, LUMINANCE_WEIGHTS};
+use super::{PixelFit, PixelStatus, SolveInput, SolveResult, LUMINANCE_WEIGHTS};
 use crate::plane::Frames;
 use crate::progress::Progress;
-
-/// Pixels processed together (one vector register of f32 on AVX-512, two on AVX2).
-pub const LANES: usize = 16;
-
-/// The floating-point type the kernel computes in.
-pub trait Real:
-    num_traits::Float + Copy + Send + Sync + Default + std::ops::AddAssign + 'static
-{
-    fn of(v: f64) -> Self;
-    fn of32(v: f32) -> Self;
-    fn to32(self) -> f32;
-}
-
-impl Real for f32 {
-    #[inline(always)]
-    fn of(v: f64) -> Self {
-        v as f32
-    }
-    #[inline(always)]
-    fn of32(v: f32) -> Self {
-        v
-    }
-    #[inline(always)]
-    fn to32(self) -> f32 {
-        self
-    }
-}
-
-impl Real for f64 {
-    #[inline(always)]
-    fn of(v: f64) -> Self {
-        v
-    }
-    #[inline(always)]
-    fn of32(v: f32) -> Self {
-        v as f64
-    }
-    #[inline(always)]
-    fn to32(self) -> f32 {
-        self as f32
-    }
-}
-
-/// `LANES` values operated on together: each operation is a loop over the lanes, which LLVM
-/// turns into vector instructions.
-#[derive(Clone, Copy)]
-struct V<T>([T; LANES]);
-
-// No `array::map` or closures below: code the compiler does not inline into the AVX-512 /
-// AVX2 instances is compiled for the baseline CPU, where `mul_add` is a library call (perf
-// showed a third of the kernel's time in such calls).
-impl<T: Real> V<T> {
-    #[inline(always)]
-    fn splat(v: T) -> Self {
-        V([v; LANES])
-    }
-    #[inline(always)]
-    fn sqrt(self) -> Self {
-        let mut out = self.0;
-        for v in &mut out {
-            *v = v.sqrt();
-        }
-        V(out)
-    }
-    #[inline(always)]
-    fn max(self, floor: T) -> Self {
-        let mut out = self.0;
-        for v in &mut out {
-            // NaN becomes `floor` too.
-            *v = if *v > floor { *v } else { floor };
-        }
-        V(out)
-    }
-}
-
-macro_rules! lane_op {
-    ($trait:ident, $method:ident, $op:tt) => {
-        impl<T: Real> std::ops::$trait for V<T> {
-            type Output = V<T>;
-            #[inline(always)]
-            fn $method(self, o: V<T>) -> V<T> {
-                let mut out = self.0;
-                for l in 0..LANES {
-                    out[l] = self.0[l] $op o.0[l];
-                }
-                V(out)
-            }
-        }
-        impl<T: Real> std::ops::$trait<T> for V<T> {
-            type Output = V<T>;
-            #[inline(always)]
-            fn $method(self, o: T) -> V<T> {
-                let mut out = self.0;
-                for l in 0..LANES {
-                    out[l] = self.0[l] $op o;
-                }
-                V(out)
-            }
-        }
-    };
-}
-lane_op!(Add, add, +);
-lane_op!(Sub, sub, -);
-lane_op!(Mul, mul, *);
-lane_op!(Div, div, /);
 
 /// Where the coefficients come from.
 pub enum Coefficients {
@@ -311,17 +211,6 @@ mod simd {
     }
 }
 
-/// `a * b + c`, fused where the CPU has FMA (`FMA` is only set in code compiled for it: a
-/// fused multiply-add without the instruction is a slow library call).
-#[inline(always)]
-fn madd<T: Real, const FMA: bool>(a: T, b: T, c: T) -> T {
-    if FMA {
-        a.mul_add(b, c)
-    } else {
-        a * b + c
-    }
-}
-
 #[inline(always)]
 fn solve_row<T: Real, const FMA: bool>(
     ctx: &Context,
@@ -351,7 +240,7 @@ fn solve_row<T: Real, const FMA: bool>(
             if !inside.iter().any(|&b| b) {
                 // The outputs are not prefilled (`SolveResult::zeroed`).
                 for l in 0..LANES {
-                    reset_pixel(row, x + l, PixelStatus::OutsideMask);
+                    row.reset(x + l, PixelStatus::OutsideMask);
                 }
                 continue;
             }
@@ -381,40 +270,10 @@ fn solve_row<T: Real, const FMA: bool>(
             if inside[l] && !ok[l] {
                 exact_pixel(ctx, y, x + l, row, scratch);
             } else if !inside[l] {
-                reset_pixel(row, x + l, PixelStatus::OutsideMask);
+                row.reset(x + l, PixelStatus::OutsideMask);
             }
         }
     }
-}
-
-/// How far ahead of the current chunk (pixels) the input planes are prefetched: the kernel
-/// reads ~40 streams at once (30 colour planes, 10 masks), more than the hardware prefetchers
-/// track, so without this every chunk waits for memory.
-const PREFETCH_AHEAD: usize = 256;
-
-/// Asks the CPU to start loading the cache lines at pixel index `i` of every input plane.
-#[inline(always)]
-fn prefetch(frames: &Frames, i: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let n = frames.width * frames.height;
-        if i >= n {
-            return;
-        }
-        for f in &frames.lights {
-            for p in f.rgb.channels() {
-                // SAFETY: `i` is inside the plane; prefetching never faults.
-                unsafe { _mm_prefetch::<_MM_HINT_T0>(p.data.as_ptr().add(i) as *const i8) };
-            }
-            if let Some(m) = &f.saturated {
-                // SAFETY: as above.
-                unsafe { _mm_prefetch::<_MM_HINT_T0>(m.data.as_ptr().add(i) as *const i8) };
-            }
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (frames, i);
 }
 
 /// Interpolates the node coefficients to row `y`: the value at each node column and the
@@ -702,89 +561,14 @@ fn solve_chunk<T: Real, const FMA: bool>(
     ok
 }
 
-/// `a - p q` where `drop`, else `a`.
-#[inline(always)]
-fn subtract_if<T: Real, const FMA: bool>(drop: bool, a: T, p: T, q: T) -> T {
-    if drop {
-        madd::<T, FMA>(-p, q, a)
-    } else {
-        a
-    }
-}
-
-/// `LANES` values of plane `p` from pixel index `i0`.
-#[inline(always)]
-fn load<T: Real>(p: &crate::plane::Plane, i0: usize) -> [T; LANES] {
-    let src: &[f32; LANES] = p.data[i0..i0 + LANES].try_into().expect("a whole chunk");
-    let mut out = [T::zero(); LANES];
-    for (o, &v) in out.iter_mut().zip(src) {
-        *o = T::of32(v);
-    }
-    out
-}
-
-/// Writes `v` to `out` (`LANES` values) in `f32`.
-#[inline(always)]
-fn store<T: Real>(out: &mut [f32], v: &V<T>) {
-    for (o, v) in out.iter_mut().zip(&v.0) {
-        *o = v.to32();
-    }
-}
-
-/// Squared Frobenius norm of a symmetric 3x3 matrix stored as (xx, xy, xz, yy, yz, zz).
-#[inline(always)]
-fn frob_sq<T: Real>(m: &[V<T>; 6]) -> V<T> {
-    m[0] * m[0] + m[3] * m[3] + m[5] * m[5] + (m[1] * m[1] + m[2] * m[2] + m[4] * m[4]) * T::of(2.0)
-}
-
-/// The symmetric matrix `m` (layout of [`frob_sq`]) times `v`.
-#[inline(always)]
-fn apply<T: Real>(m: &[V<T>; 6], v: &[V<T>; 3]) -> [V<T>; 3] {
-    [
-        m[0] * v[0] + m[1] * v[1] + m[2] * v[2],
-        m[1] * v[0] + m[3] * v[1] + m[4] * v[2],
-        m[2] * v[0] + m[4] * v[1] + m[5] * v[2],
-    ]
-}
-
-/// Component `d` of the luminance combination of three per-channel vectors.
-#[inline(always)]
-fn mix<T: Real>(v: &[[V<T>; 3]; 3], d: usize, wt: &[T; 3]) -> V<T> {
-    v[0][d] * wt[0] + v[1][d] * wt[1] + v[2][d] * wt[2]
-}
-
-#[inline(always)]
-fn vectors<T: Real>(v: &[[T; LANES]; 3]) -> [V<T>; 3] {
-    [V(v[0]), V(v[1]), V(v[2])]
-}
-
-#[inline(always)]
-fn dot<T: Real>(a: &[V<T>; 3], b: &[V<T>; 3]) -> V<T> {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-/// Resets pixel `x` of `row` to the unsolved defaults with `status`.
-pub(super) fn reset_pixel(row: &mut RowOut, x: usize, status: PixelStatus) {
-    for d in 0..3 {
-        row.normal[d][x] = if d == 2 { 1.0 } else { 0.0 };
-        row.albedo[d][x] = 0.0;
-    }
-    row.residual[x] = 0.0;
-    row.predicted[x] = 0.0;
-    row.condition[x] = 0.0;
-    row.lights[x] = 0;
-    row.fit[x] = PixelFit::LeastSquares;
-    row.status[x] = status;
-}
-
 /// Solves one pixel with the exact kernel (dropping unusable lights).
 fn exact_pixel<T>(ctx: &Context, y: usize, x: usize, row: &mut RowOut, s: &mut RowScratch<T>) {
     let w = ctx.frames.width;
     if ctx.mask.is_some_and(|m| !m.data[y * w + x]) {
-        reset_pixel(row, x, PixelStatus::OutsideMask);
+        row.reset(x, PixelStatus::OutsideMask);
         return;
     }
-    reset_pixel(row, x, PixelStatus::OutsideMask);
+    row.reset(x, PixelStatus::OutsideMask);
     match ctx.illumination.point(x, y) {
         Some(point) => ctx
             .exact

@@ -2,37 +2,19 @@
 //! problem for the four right-hand sides, and derive normal, albedo, residual, condition and
 //! predicted error.
 
-use nalgebra::{DMatrix, Matrix3, Vector3};
+use nalgebra::{Matrix3, Vector3};
 
-use super::adaptive::ChiSquare;
+use super::chi_square::ChiSquare;
 use super::lights::Illumination;
+use super::measure::{fit_normal_equations, fit_svd, Fit, Measurement};
+use super::options::{Estimator, Method, SolveOptions};
 use super::predict::expected_angle_error;
 use super::robust;
-use super::{
-    Estimator, Method, NoiseModel, PixelFit, PixelStatus, SolveInput, SolveOptions, SolveResult,
-    LUMINANCE_WEIGHTS,
-};
+use super::{NoiseModel, PixelFit, PixelStatus, SolveInput, SolveResult, LUMINANCE_WEIGHTS};
 use crate::plane::Frames;
 
 /// `lights_used` is stored as a byte.
 pub const MAX_LIGHTS: usize = 255;
-
-/// One light's usable measurement at one pixel, already divided by the light's intensity.
-#[derive(Clone, Copy)]
-pub(super) struct Measurement {
-    /// Unit direction toward the light.
-    pub l: Vector3<f64>,
-    /// `I'` per colour channel: measured value over the white-surface signal.
-    pub rgb: [f64; 3],
-    /// Luminance of `rgb`.
-    pub lum: f64,
-    /// Noise variance of `lum`.
-    pub var: f64,
-    /// The variance the chi-square test and the weighted fits use (`ChiSquare::prepare`).
-    pub test_var: f64,
-    /// Which light (frame index).
-    pub light: u16,
-}
 
 /// Per-thread buffer reused across pixels so the inner loop does not allocate.
 pub struct Scratch {
@@ -69,6 +51,20 @@ impl<'a> RowOut<'a> {
         self.status[x] == PixelStatus::Solved && self.fit[x] != PixelFit::Sheen
     }
 
+    /// Resets pixel `x` of `row` to the unsolved defaults with `status`.
+    pub fn reset(&mut self, x: usize, status: PixelStatus) {
+        for d in 0..3 {
+            self.normal[d][x] = if d == 2 { 1.0 } else { 0.0 };
+            self.albedo[d][x] = 0.0;
+        }
+        self.residual[x] = 0.0;
+        self.predicted[x] = 0.0;
+        self.condition[x] = 0.0;
+        self.lights[x] = 0;
+        self.fit[x] = PixelFit::LeastSquares;
+        self.status[x] = status;
+    }
+
     pub fn split(result: &'a mut SolveResult) -> Vec<RowOut<'a>> {
         let w = result.width.max(1);
         let [nx, ny, nz] = &mut result.normal;
@@ -99,23 +95,6 @@ impl<'a> RowOut<'a> {
             })
             .collect()
     }
-}
-
-/// The solution at one pixel, before it is turned into outputs.
-#[derive(Clone)]
-pub(super) struct Fit {
-    /// Scaled normals (unit normal times albedo): luminance first, then R, G, B.
-    pub n_lum: Vector3<f64>,
-    pub n_rgb: [Vector3<f64>; 3],
-    /// `(L^T L)^-1`, for the predicted error; `(L^T W L)^-1` when `weighted`.
-    pub a_inv: Matrix3<f64>,
-    /// Weighted least squares with `W = 1 / variance`: `a_inv` is then the covariance of
-    /// `n_lum` itself.
-    pub weighted: bool,
-    pub condition: f64,
-    /// RMS luminance residual when the fit's model is not `n_lum . l` (the sheen fit).
-    pub residual: Option<f64>,
-    pub kind: PixelFit,
 }
 
 pub struct Kernel<'a> {
@@ -168,7 +147,10 @@ impl<'a> Kernel<'a> {
                     .luminance_floor_variance(&LUMINANCE_WEIGHTS)
                     .sqrt(),
             options,
-            chi_square: ChiSquare::new(&options.robust),
+            chi_square: ChiSquare::new(
+                options.robust.significance_sigma,
+                options.robust.relative_model_error,
+            ),
             force_sheen: false,
         }
     }
@@ -204,10 +186,10 @@ impl<'a> Kernel<'a> {
             row.status[x] = PixelStatus::Degenerate;
             return;
         };
-        if self.options.estimator != Estimator::LeastSquares {
+        if self.options.estimator() != Estimator::LeastSquares {
             self.chi_square.prepare(measurements);
         }
-        let escalate = match self.options.estimator {
+        let escalate = match self.options.estimator() {
             Estimator::LeastSquares => false,
             Estimator::Robust => true,
             Estimator::Adaptive => {
@@ -217,9 +199,11 @@ impl<'a> Kernel<'a> {
         let fit = if escalate {
             row.escalated += 1;
             let context = robust::Context {
-                kernel: self,
+                options: &self.options.robust,
+                max_condition: self.options.max_condition,
+                chi: &self.chi_square,
                 view: self.illumination.view(point),
-                force_sheen: self.force_sheen || self.options.estimator == Estimator::Robust,
+                force_sheen: self.force_sheen || self.options.estimator() == Estimator::Robust,
             };
             robust::refine(&context, measurements, buffers, fit)
         } else {
@@ -232,15 +216,11 @@ impl<'a> Kernel<'a> {
     /// Plain least squares over `measurements` with the options' method; `None` when the light
     /// matrix is singular or worse conditioned than allowed.
     pub(super) fn least_squares(&self, measurements: &[Measurement]) -> Option<Fit> {
-        let fit = match self.options.method {
+        let fit = match self.options.kernel.method() {
             Method::NormalEquations => fit_normal_equations(measurements),
             Method::Svd => fit_svd(measurements),
         };
         fit.filter(|f| f.condition <= self.options.max_condition)
-    }
-
-    pub(super) fn options(&self) -> &SolveOptions {
-        self.options
     }
 
     pub(super) fn chi_square(&self) -> &ChiSquare {
@@ -352,65 +332,4 @@ impl<'a> Kernel<'a> {
         row.fit[x] = fit.kind;
         row.status[x] = PixelStatus::Solved;
     }
-}
-
-/// Least squares through the normal equations, inverted in closed form.
-pub(super) fn fit_normal_equations(measurements: &[Measurement]) -> Option<Fit> {
-    let mut a = Matrix3::zeros();
-    let mut b_lum = Vector3::zeros();
-    let mut b_rgb = [Vector3::zeros(); 3];
-    for m in measurements {
-        a += m.l * m.l.transpose();
-        b_lum += m.l * m.lum;
-        for c in 0..3 {
-            b_rgb[c] += m.l * m.rgb[c];
-        }
-    }
-    let a_inv = a.try_inverse()?;
-    // Frobenius-norm condition number of A = L^T L, square-rooted to speak of L.
-    let condition = (a.norm() * a_inv.norm()).sqrt();
-    Some(Fit {
-        n_lum: a_inv * b_lum,
-        n_rgb: b_rgb.map(|b| a_inv * b),
-        a_inv,
-        condition,
-        residual: None,
-        kind: PixelFit::LeastSquares,
-        weighted: false,
-    })
-}
-
-/// Least squares through the singular value decomposition of `L` (the seed's method).
-fn fit_svd(measurements: &[Measurement]) -> Option<Fit> {
-    let m = measurements.len();
-    let l = DMatrix::from_fn(m, 3, |r, c| measurements[r].l[c]);
-    let rhs = DMatrix::from_fn(m, 4, |r, c| match c {
-        0 => measurements[r].lum,
-        _ => measurements[r].rgb[c - 1],
-    });
-    let svd = l.svd(true, true);
-    let sigma = &svd.singular_values;
-    if sigma.iter().any(|&s| !(s > 0.0 && s.is_finite())) {
-        return None;
-    }
-    let solution = svd.solve(&rhs, 0.0).ok()?;
-    let v_t = svd.v_t.as_ref()?;
-    // (L^T L)^-1 = V diag(1/sigma^2) V^T.
-    let mut a_inv = Matrix3::zeros();
-    for (k, s) in sigma.iter().enumerate() {
-        let v = Vector3::new(v_t[(k, 0)], v_t[(k, 1)], v_t[(k, 2)]);
-        a_inv += v * v.transpose() / (s * s);
-    }
-    let norm_a: f64 = sigma.iter().map(|s| s.powi(4)).sum::<f64>().sqrt();
-    let norm_a_inv: f64 = sigma.iter().map(|s| s.powi(-4)).sum::<f64>().sqrt();
-    let column = |c: usize| Vector3::new(solution[(0, c)], solution[(1, c)], solution[(2, c)]);
-    Some(Fit {
-        n_lum: column(0),
-        n_rgb: [column(1), column(2), column(3)],
-        a_inv,
-        condition: (norm_a * norm_a_inv).sqrt(),
-        residual: None,
-        kind: PixelFit::LeastSquares,
-        weighted: false,
-    })
 }

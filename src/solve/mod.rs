@@ -8,11 +8,18 @@
 //! shadow reads zero whatever the normal, so it would only bias the fit). Pixels left with
 //! fewer than three lights, or with lights too close to coplanar, are flagged, never NaN.
 
+// The chain, each link importing only those above it: measurements and fits, the chi-square
+// test, the sheen lobe, the robust fit, the exact kernel, the streaming kernel, the adaptive
+// screen. `lights`, `predict`, `options`, `lanes` and `tiles` are leaves they share.
 mod adaptive;
+mod chi_square;
 mod departures;
 mod fast;
 mod kernel;
+mod lanes;
 mod lights;
+mod measure;
+mod options;
 mod predict;
 mod robust;
 mod sheen;
@@ -26,84 +33,15 @@ use crate::plane::{Frames, Mask, Plane};
 use crate::progress::Progress;
 
 pub use lights::{GainGrid, Illumination, LightModel, LightSource};
+pub use options::{
+    default_kernel_tolerance_deg, Estimator, KernelChoice, Method, Precision, RobustOptions,
+    SolveOptions, Streaming, StreamingEstimator, TileTolerance, DEFAULT_TILE_TOLERANCE_DEG,
+};
 pub use predict::{elliptic_e, expected_angle_error, NoiseModel};
-pub use robust::RobustOptions;
 pub use sheen::SheenModel;
 
 /// Rec. 709 luminance weights: the grayscale the normal is solved from (seed eq. 26).
 pub const LUMINANCE_WEIGHTS: [f64; 3] = [0.2126, 0.7152, 0.0722];
-
-/// How each pixel's least-squares problem is solved.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
-#[serde(rename_all = "kebab-case")]
-pub enum Method {
-    /// The 3x3 normal equations `L^T L N = L^T I'`, inverted in closed form (f64). The fast
-    /// path: one small matrix shared by the four solves.
-    #[default]
-    NormalEquations,
-    /// The seed's method: singular value decomposition of `L` (nalgebra, f64). Slower; the
-    /// reference the fast path is checked against.
-    Svd,
-}
-
-/// The floating-point type of the streaming kernel.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
-#[serde(rename_all = "kebab-case")]
-pub enum Precision {
-    #[default]
-    F64,
-    /// Single precision: twice the lanes per vector; costs ~1e-4 degrees (see docs/bench).
-    F32,
-}
-
-/// Which estimator solves each pixel.
-#[derive(
-    Clone,
-    Copy,
-    Debug,
-    PartialEq,
-    Eq,
-    serde::Serialize,
-    serde::Deserialize,
-    clap::ValueEnum,
-    Default,
-)]
-pub enum Estimator {
-    /// Plain least squares over every usable light (dark, saturated and non-finite
-    /// measurements are always left out).
-    #[serde(rename = "ls")]
-    #[value(name = "ls")]
-    LeastSquares,
-    /// The robust fit (outlier rejection, then the sheen model where configured) at every
-    /// pixel. See `robust`.
-    #[serde(rename = "robust")]
-    #[value(name = "robust")]
-    Robust,
-    /// Least squares everywhere; the robust fit only where the least-squares residual fails a
-    /// chi-square test against the noise model. See `adaptive`. With the streaming kernel
-    /// (`--precision f32`, `--tile-tolerance`) the fast least squares runs everywhere and
-    /// only the pixels its residual screen flags are solved again by the exact kernel.
-    #[default]
-    #[serde(rename = "adaptive")]
-    #[value(name = "adaptive")]
-    Adaptive,
-}
-
-impl Estimator {
-    pub const ALL: [Estimator; 3] = [
-        Estimator::LeastSquares,
-        Estimator::Robust,
-        Estimator::Adaptive,
-    ];
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Estimator::LeastSquares => "ls",
-            Estimator::Robust => "robust",
-            Estimator::Adaptive => "adaptive",
-        }
-    }
-}
 
 /// Which fit produced a pixel's solution (the confidence map's `fit` channel).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, Default)]
@@ -127,93 +65,6 @@ impl PixelFit {
             PixelFit::LeastSquares => "least_squares",
             PixelFit::Robust => "robust",
             PixelFit::Sheen => "sheen",
-        }
-    }
-}
-
-#[derive(Clone, Debug, serde::Serialize)]
-pub struct SolveOptions {
-    pub light_model: LightModel,
-    pub method: Method,
-    pub estimator: Estimator,
-    /// Tuning of the robust fit (used by `Estimator::Robust` and `Estimator::Adaptive`).
-    pub robust: RobustOptions,
-    /// A measurement whose luminance is at or below this many standard deviations of the
-    /// sensor's noise floor counts as dark (shadowed) and is left out.
-    pub dark_threshold_sigma: f64,
-    /// Pixels whose light matrix has a condition number above this are flagged degenerate.
-    pub max_condition: f64,
-    /// Compute the per-pixel predicted error (a few more multiplies per light).
-    pub predict_error: bool,
-    /// Precision of the streaming kernel. `F32`, or a tile tolerance, selects the streaming
-    /// kernel (`fast.rs`); `F64` without tiles keeps the exact per-pixel kernel.
-    pub precision: Precision,
-    /// Share light coefficients across tiles (interpolated from their corners) where that
-    /// moves normals by at most this many degrees; `None`: exact coefficients per pixel.
-    pub tile_tolerance_deg: Option<f64>,
-    /// Solve the luminance alone (one solve instead of three): the normal, and the luminance
-    /// albedo in every albedo channel.
-    pub normal_only: bool,
-    /// Use the streaming kernel even in f64 with per-pixel coefficients (F32 or a tile
-    /// tolerance select it anyway).
-    pub streaming_kernel: bool,
-}
-
-/// The tile tolerance of the default kernel, degrees: light coefficients are shared across
-/// tiles only where that moves no normal by more than this.
-pub const DEFAULT_TILE_TOLERANCE_DEG: f64 = 0.01;
-
-/// How far the default kernel's least-squares normal of a pixel may lie from the exact
-/// kernel's, degrees, given the pixel's light-matrix `condition` number, for measurements the
-/// Lambertian model fits (sensor noise adds its residual times the tiles' coefficient error,
-/// of the order of the noise's own effect times the tile tolerance): twice the tile tolerance
-/// (the tile planner aims at the tolerance on sampled test normals, it does not bound every
-/// pixel: near the sensor's corners pixels move up to ~1.2x it) plus the forward error of a single-precision least-squares solve, `condition^2 * K * eps`
-/// with K = 40 for the ten-light normal equations (the bound `tests_fast` checks the f32
-/// kernel against; about 5e-4 degrees at condition 10, mostly far less in practice).
-pub fn default_kernel_tolerance_deg(condition: f64) -> f64 {
-    2.0 * DEFAULT_TILE_TOLERANCE_DEG
-        + (condition * condition * 40.0 * f32::EPSILON as f64).to_degrees()
-}
-
-impl SolveOptions {
-    /// These options with the default kernel of `psscan solve`: the streaming f32 kernel with
-    /// tiled coefficients ([`DEFAULT_TILE_TOLERANCE_DEG`]), whose normals lie within
-    /// [`default_kernel_tolerance_deg`] of the exact kernel's, wherever the estimator and method
-    /// allow it (the adaptive estimator sends the pixels its screen flags to the exact kernel).
-    /// The robust estimator and the SVD method keep the exact kernel, which `--precision f64`
-    /// also asks for.
-    pub fn with_default_kernel(mut self) -> Self {
-        if self.estimator != Estimator::Robust && self.method != Method::Svd {
-            self.precision = Precision::F32;
-            self.tile_tolerance_deg = Some(DEFAULT_TILE_TOLERANCE_DEG);
-        }
-        self
-    }
-
-    /// Whether the streaming kernel solves the pixels (the least-squares and adaptive
-    /// estimators; the adaptive one sends the pixels its screen flags to the exact kernel).
-    pub fn streaming(&self) -> bool {
-        self.streaming_kernel
-            || self.precision == Precision::F32
-            || self.tile_tolerance_deg.is_some()
-    }
-}
-
-impl Default for SolveOptions {
-    fn default() -> Self {
-        SolveOptions {
-            light_model: LightModel::Near,
-            method: Method::NormalEquations,
-            estimator: Estimator::default(),
-            robust: RobustOptions::default(),
-            dark_threshold_sigma: 3.0,
-            max_condition: 1e3,
-            predict_error: true,
-            precision: Precision::F64,
-            tile_tolerance_deg: None,
-            normal_only: false,
-            streaming_kernel: false,
         }
     }
 }
@@ -318,13 +169,13 @@ impl SolveResult {
         let n = width * height;
         let plane = || {
             let mut p = Plane::new(width, height, 0.0);
-            huge_pages(&mut p.data);
+            crate::alloc::huge_pages(&mut p.data);
             p
         };
         let mut lights_used = vec![0u8; n];
-        huge_pages(&mut lights_used);
+        crate::alloc::huge_pages(&mut lights_used);
         let mut status = zeroed_u8_enum::<PixelStatus>(n);
-        huge_pages(&mut status);
+        crate::alloc::huge_pages(&mut status);
         SolveResult {
             width,
             height,
@@ -420,24 +271,6 @@ fn zeroed_u8_enum<T: ZeroIsValid>(n: usize) -> Vec<T> {
     unsafe { Vec::from_raw_parts(bytes.as_mut_ptr() as *mut T, bytes.len(), bytes.capacity()) }
 }
 
-/// Advises the kernel to back `data` with transparent huge pages (Linux; a hint only).
-fn huge_pages<T>(data: &mut [T]) {
-    #[cfg(target_os = "linux")]
-    {
-        const HUGE: usize = 2 << 20;
-        let start = data.as_mut_ptr() as usize;
-        let end = start + std::mem::size_of_val(data);
-        let (a, b) = (start.next_multiple_of(HUGE), end / HUGE * HUGE);
-        if b > a {
-            // SAFETY: the range lies inside `data`'s allocation; MADV_HUGEPAGE changes no
-            // contents, only how the pages are backed.
-            unsafe { libc::madvise(a as *mut libc::c_void, b - a, libc::MADV_HUGEPAGE) };
-        }
-    }
-    #[cfg(not(target_os = "linux"))]
-    let _ = data;
-}
-
 /// Solves every pixel of the frames. Rows are solved in parallel (rayon); `progress` sees one
 /// step per row.
 pub fn solve(
@@ -450,8 +283,8 @@ pub fn solve(
 
 /// As [`solve`], writing into `previous`'s planes when they have the frames' size (a batch of
 /// same-size captures passes each result on to the next solve once its maps are written):
-/// fresh output memory costs the kernel a page fault and a zeroing pass per page, ~15% of
-/// the streaming kernel's time at 16 MP. Same results as [`solve`].
+/// fresh output memory costs the kernel a page fault and a zeroing pass per page, a sizeable
+/// share of the streaming kernel's time (docs/solve.md). Same results as [`solve`].
 pub fn solve_reusing(
     input: &SolveInput,
     options: &SolveOptions,
@@ -490,18 +323,20 @@ pub fn solve_reusing(
         None if streaming => SolveResult::zeroed(width, height),
         None => SolveResult::new(width, height),
     };
-    result.escalated = if streaming {
-        solve_streaming(
+    result.escalated = match &options.kernel {
+        KernelChoice::Streaming(streaming) => solve_streaming(
             input,
             options,
+            streaming,
             &illumination,
             &kernel,
             &mut result,
             progress,
             reused,
-        )
-    } else {
-        solve_pass(input, &kernel, &illumination, &mut result, progress, false)
+        ),
+        KernelChoice::Exact { .. } => {
+            solve_pass(input, &kernel, &illumination, &mut result, progress, false)
+        }
     };
     progress.end();
     if needs_sheen_everywhere(options, &result) {
@@ -553,7 +388,7 @@ fn solve_pass(
 /// Adaptive only: true when a sheen model is configured and more of the solved pixels needed
 /// it in the first pass than `sheen_scene_fraction`.
 fn needs_sheen_everywhere(options: &SolveOptions, result: &SolveResult) -> bool {
-    if options.estimator != Estimator::Adaptive || options.robust.sheen.is_none() {
+    if options.estimator() != Estimator::Adaptive || options.robust.sheen.is_none() {
         return false;
     }
     let solved = result.count(PixelStatus::Solved);
@@ -568,6 +403,7 @@ fn needs_sheen_everywhere(options: &SolveOptions, result: &SolveResult) -> bool 
 fn solve_streaming(
     input: &SolveInput,
     options: &SolveOptions,
+    streaming: &Streaming,
     illumination: &Illumination,
     kernel: &kernel::Kernel,
     result: &mut SolveResult,
@@ -575,53 +411,55 @@ fn solve_streaming(
     reused: bool,
 ) -> usize {
     let (w, h) = (input.frames.width, input.frames.height);
-    let coefficients = match options.tile_tolerance_deg {
-        Some(tolerance) => match tiles::plan(illumination, w, h, tolerance) {
-            Some(grid) => fast::Coefficients::Tiled(grid),
-            None => fast::Coefficients::PerPixel,
-        },
-        None => fast::Coefficients::PerPixel,
+    let planned = streaming
+        .tiles
+        .and_then(|t| tiles::plan(illumination, w, h, t.degrees()).map(|grid| (grid, t)));
+    // The screen's slack for interpolated directions: the tolerance the tile planner kept the
+    // grid within.
+    let (coefficients, tile_error_deg) = match planned {
+        Some((grid, t)) => (fast::Coefficients::Tiled(grid), t.degrees()),
+        None => (fast::Coefficients::PerPixel, 0.0),
     };
     let mut ctx = fast::Context::new(input, options, illumination, &coefficients, kernel);
     ctx.reused_outputs = reused;
-    if options.estimator == Estimator::Adaptive {
-        // The screen's slack for interpolated directions: the tolerance the tile planner kept
-        // the grid within.
-        let tile_error_deg = match &coefficients {
-            fast::Coefficients::Tiled(_) => options.tile_tolerance_deg.unwrap_or(0.0),
-            fast::Coefficients::PerPixel => 0.0,
-        };
-        let chi = kernel.chi_square();
-        let screen = adaptive::Screen::new(chi, options, input, illumination, tile_error_deg);
-        let (kernel, screen) = (kernel, &screen);
-        return match options.precision {
-            Precision::F32 => adaptive::solve_streaming(
-                &ctx,
-                kernel,
-                screen,
-                illumination,
-                result,
-                progress,
-                fast::row_f32,
-            ),
-            Precision::F64 => adaptive::solve_streaming(
-                &ctx,
-                kernel,
-                screen,
-                illumination,
-                result,
-                progress,
-                fast::row_f64,
-            ),
-        };
+    match (streaming.estimator, streaming.precision) {
+        (StreamingEstimator::Adaptive, precision) => {
+            let chi = kernel.chi_square();
+            let screen = adaptive::Screen::new(chi, options, input, illumination, tile_error_deg);
+            match precision {
+                Precision::F32 => adaptive::solve_streaming(
+                    &ctx,
+                    kernel,
+                    &screen,
+                    illumination,
+                    result,
+                    progress,
+                    fast::row_f32,
+                ),
+                Precision::F64 => adaptive::solve_streaming(
+                    &ctx,
+                    kernel,
+                    &screen,
+                    illumination,
+                    result,
+                    progress,
+                    fast::row_f64,
+                ),
+            }
+        }
+        (StreamingEstimator::LeastSquares, Precision::F32) => {
+            fast::solve_rows::<f32>(&ctx, result, progress, fast::row_f32);
+            0
+        }
+        (StreamingEstimator::LeastSquares, Precision::F64) => {
+            fast::solve_rows::<f64>(&ctx, result, progress, fast::row_f64);
+            0
+        }
     }
-    match options.precision {
-        Precision::F32 => fast::solve_rows::<f32>(&ctx, result, progress, fast::row_f32),
-        Precision::F64 => fast::solve_rows::<f64>(&ctx, result, progress, fast::row_f64),
-    }
-    0
 }
 
+/// Checks what the options cannot: that the frames, lights, mask and exposure agree, and the
+/// thresholds' ranges. (The kernel choice holds only combinations the kernels run.)
 fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illumination) -> Result<()> {
     let frames = input.frames.lights.len();
     if frames != lights.len() {
@@ -649,27 +487,6 @@ fn check_inputs(input: &SolveInput, options: &SolveOptions, lights: &Illuminatio
             "exposure scale must be positive, got {}",
             input.exposure
         )));
-    }
-    if let Some(t) = options.tile_tolerance_deg {
-        if !(t > 0.0 && t <= 1.0) {
-            return Err(Error::Invalid(format!(
-                "tile tolerance must be in (0, 1] degrees, got {t}"
-            )));
-        }
-    }
-    if options.streaming() && options.estimator == Estimator::Robust {
-        return Err(Error::Invalid(
-            "the robust estimator fits every pixel with the exact kernel: drop --precision f32 \
-             and --tile-tolerance, or use --estimator adaptive (the streaming least squares, \
-             the robust fit only where the residual asks for it)"
-                .into(),
-        ));
-    }
-    if options.streaming() && options.method == Method::Svd {
-        return Err(Error::Invalid(
-            "the SVD method is per pixel in f64 only: drop --precision f32 and --tile-tolerance"
-                .into(),
-        ));
     }
     let condition_ok = options.max_condition > 1.0 && !options.max_condition.is_nan();
     let threshold_ok =

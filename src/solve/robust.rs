@@ -18,88 +18,22 @@
 //! one light at a time by its own noise-normalised residual keeps the noise-optimal fit
 //! wherever the data allow it.
 
-use nalgebra::{Matrix3, Vector3};
-use serde::{Deserialize, Serialize};
+use nalgebra::Vector3;
 
-use super::adaptive::ChiSquare;
+use super::chi_square::{weighted_fit, ChiSquare, WeightedFit};
 use super::departures;
-use super::kernel::{fit_normal_equations, Fit, Kernel, Measurement};
+use super::measure::{condition_of, fit_normal_equations, Fit, Measurement};
+use super::options::RobustOptions;
 use super::sheen::{self, SheenModel};
-use super::PixelFit;
-use crate::error::{Error, Result};
-
-/// Tuning of the robust fit and of the adaptive estimator's escalation test.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct RobustOptions {
-    /// The chi-square test of a fit against the noise model rejects at this many standard
-    /// deviations (of the normal distribution, 3 = a false alarm on 0.13 % of clean pixels).
-    pub significance_sigma: f64,
-    /// A light whose studentised residual exceeds this many standard deviations is an outlier.
-    pub outlier_sigma: f64,
-    /// At most this fraction of a pixel's usable lights may be rejected as outliers either
-    /// way (4 are always kept, so that the result can still be tested); the pass that rejects
-    /// only darker lights (cast shadows) may go down to 4.
-    pub max_rejected_fraction: f64,
-    /// Model error of real surfaces, as a fraction of the signal, added in quadrature to the
-    /// sensor noise in both tests (0: the noise model alone decides).
-    pub relative_model_error: f64,
-    /// The sheen lobe to fit with the normal where rejecting lights does not explain the data;
-    /// `None`: no sheen fit.
-    pub sheen: Option<SheenModel>,
-    /// Adaptive estimator: when the sheen fit solved more than this fraction of the pixels in
-    /// the first pass, the scene shows sheen and a second pass fits it at every pixel. 1 %
-    /// is several times the chi-square test's false alarms on Lambertian scenes.
-    pub sheen_scene_fraction: f64,
-}
-
-impl Default for RobustOptions {
-    fn default() -> Self {
-        RobustOptions {
-            significance_sigma: 3.0,
-            outlier_sigma: 4.0,
-            max_rejected_fraction: 0.5,
-            relative_model_error: 0.0,
-            sheen: None,
-            sheen_scene_fraction: 0.01,
-        }
-    }
-}
-
-impl RobustOptions {
-    /// Rejects settings that have no meaning (a clear error rather than a silent default).
-    pub fn validate(&self) -> Result<()> {
-        let finite = |v: f64| v.is_finite();
-        let sigmas_ok = finite(self.significance_sigma)
-            && self.outlier_sigma > 0.0
-            && finite(self.outlier_sigma);
-        if !sigmas_ok {
-            return Err(Error::Invalid(format!(
-                "robust significance_sigma must be finite and outlier_sigma positive, got {} and {}",
-                self.significance_sigma, self.outlier_sigma
-            )));
-        }
-        if !(0.0..1.0).contains(&self.max_rejected_fraction) {
-            return Err(Error::Invalid(format!(
-                "robust max_rejected_fraction must be in [0, 1), got {}",
-                self.max_rejected_fraction
-            )));
-        }
-        if !(self.relative_model_error >= 0.0 && finite(self.relative_model_error)) {
-            return Err(Error::Invalid(format!(
-                "robust relative_model_error must be >= 0, got {}",
-                self.relative_model_error
-            )));
-        }
-        match &self.sheen {
-            Some(sheen) => sheen.validate(),
-            None => Ok(()),
-        }
-    }
-}
 
 /// What the robust fit needs from the pixel besides its measurements.
 pub(super) struct Context<'a> {
-    pub kernel: &'a Kernel<'a>,
+    /// The robust fit's tuning.
+    pub options: &'a RobustOptions,
+    /// Refits whose light matrix is worse conditioned than this are not taken.
+    pub max_condition: f64,
+    /// The test every decision is made with.
+    pub chi: &'a ChiSquare,
     /// Unit vector from the pixel's point toward the camera.
     pub view: Vector3<f64>,
     /// Fit the sheen model (when configured) even where the Lambertian fit passes the test.
@@ -154,8 +88,8 @@ pub(super) fn refine(
     buffers: &mut Buffers,
     least_squares: Fit,
 ) -> Fit {
-    let options = &context.kernel.options().robust;
-    let chi = context.kernel.chi_square();
+    let options = context.options;
+    let chi = context.chi;
     // A configured sheen model is the user's account of the model error: it decides there.
     let Some(start) = weighted_fit(chi, measurements) else {
         return least_squares;
@@ -178,7 +112,9 @@ pub(super) fn refine(
     // as an outlier.
     let mut sheen_normal = None;
     if context.force_sheen || !lambertian {
-        if let Some((fit, statistic)) = sheen::fit(model, context, measurements, &all_lights) {
+        if let Some((fit, statistic)) =
+            sheen::fit(model, chi, &context.view, measurements, &all_lights)
+        {
             if chi.accepts_statistic(statistic, measurements.len()) {
                 return fit;
             }
@@ -214,7 +150,7 @@ fn noise_or_data_scaled(
     start: WeightedFit,
     least_squares: Fit,
 ) -> Fit {
-    let chi = context.kernel.chi_square();
+    let chi = context.chi;
     let condition = least_squares.condition;
     let mut usable = std::mem::take(&mut buffers.noise_usable);
     usable.clear();
@@ -287,7 +223,7 @@ fn sheen_alternation(
     if measurements.iter().any(|m| u32::from(m.light) >= u64::BITS) {
         return None;
     }
-    let chi = context.kernel.chi_square();
+    let chi = context.chi;
     let mut all = std::mem::take(&mut buffers.usable);
     all.clear();
     all.extend_from_slice(measurements);
@@ -340,7 +276,7 @@ fn alternate(
     measurements: &mut Vec<Measurement>,
     buffers: &mut Buffers,
 ) -> Option<Candidate> {
-    let chi = context.kernel.chi_square();
+    let chi = context.chi;
     let mut result: Option<Candidate> = None;
     for _ in 0..SHEEN_ROUNDS {
         measurements.clear();
@@ -350,7 +286,7 @@ fn alternate(
         };
         let mask = light_mask(measurements);
         let lambert_statistic = chi.statistic(measurements, &kept.n_lum);
-        let (fit, statistic) = match sheen::fit(model, context, measurements, &kept) {
+        let (fit, statistic) = match sheen::fit(model, chi, &context.view, measurements, &kept) {
             Some((fit, statistic)) if context.force_sheen || statistic < lambert_statistic => {
                 (fit, statistic)
             }
@@ -386,7 +322,7 @@ fn lambertian_rejection(
     start: WeightedFit,
     condition: f64,
 ) -> Option<Fit> {
-    let chi = context.kernel.chi_square();
+    let chi = context.chi;
     let usable = measurements.len();
     let weighted = reject_outliers(context, measurements, buffers, start)?;
     let rejected = measurements.len() < usable;
@@ -402,7 +338,7 @@ fn sheen_rejection(
     measurements: &mut Vec<Measurement>,
     buffers: &mut Buffers,
 ) -> Option<Fit> {
-    let chi = context.kernel.chi_square();
+    let chi = context.chi;
     if measurements.iter().any(|m| m.light >= 64) {
         // The kept set is tracked as a 64-bit mask of light indices.
         return None;
@@ -449,7 +385,7 @@ fn reject_outliers(
     buffers: &mut Buffers,
     start: WeightedFit,
 ) -> Option<WeightedFit> {
-    let chi = context.kernel.chi_square();
+    let chi = context.chi;
     buffers.original.clear();
     buffers.original.extend_from_slice(measurements);
     let spare = &mut buffers.darker;
@@ -496,13 +432,13 @@ fn reject(
     fit: WeightedFit,
     rule: Rule,
 ) -> WeightedFit {
-    let options = context.kernel.options();
-    let chi = context.kernel.chi_square();
+    let options = context.options;
+    let chi = context.chi;
     let usable = measurements.len();
     // The darker-only pass may reject past `max_rejected_fraction`: in a crevice most lights
     // are cast-shadowed, and only the lit ones, however few, give the normal.
     let keep = match rule {
-        Rule::Any => ((1.0 - options.robust.max_rejected_fraction) * usable as f64).ceil() as usize,
+        Rule::Any => ((1.0 - options.max_rejected_fraction) * usable as f64).ceil() as usize,
         Rule::DarkerOnly => 0,
     };
     // Four lights at least: three fit any normal exactly, so a rejection that left three
@@ -511,7 +447,7 @@ fn reject(
     let keep = keep.max(4);
     let mut fit = fit;
     while measurements.len() > keep && !chi.accepts_statistic(fit.chi2, measurements.len()) {
-        let sigma = options.robust.outlier_sigma;
+        let sigma = options.outlier_sigma;
         let worst = match rule {
             Rule::Any => worst_outlier(chi, measurements, &fit, sigma),
             Rule::DarkerOnly => darkest_outlier(chi, measurements, sigma),
@@ -521,7 +457,7 @@ fn reject(
         };
         let removed = measurements.swap_remove(worst);
         match weighted_fit(chi, measurements) {
-            Some(refit) if condition_of(measurements) <= options.max_condition => fit = refit,
+            Some(refit) if condition_of(measurements) <= context.max_condition => fit = refit,
             _ => {
                 // Dropping it leaves the lights degenerate: keep it.
                 measurements.push(removed);
@@ -530,80 +466,6 @@ fn reject(
         }
     }
     fit
-}
-
-/// Weighted least squares (`W = 1 / variance` of each light's luminance) on the luminance:
-/// the maximum-likelihood fit under the noise model, whose residual is chi-square distributed.
-#[derive(Clone)]
-pub(super) struct WeightedFit {
-    n_lum: Vector3<f64>,
-    /// `(L^T W L)^-1`: the covariance of `n_lum`.
-    cov: Matrix3<f64>,
-    chi2: f64,
-}
-
-fn weighted_fit(chi: &ChiSquare, measurements: &[Measurement]) -> Option<WeightedFit> {
-    let mut a = Matrix3::zeros();
-    let mut b = Vector3::zeros();
-    for m in measurements {
-        let w = 1.0 / chi.variance(m);
-        a += m.l * m.l.transpose() * w;
-        b += m.l * (m.lum * w);
-    }
-    let cov = a.try_inverse()?;
-    let n_lum = cov * b;
-    let chi2 = chi.statistic(measurements, &n_lum);
-    Some(WeightedFit { n_lum, cov, chi2 })
-}
-
-/// The chi-square statistic of the weighted fit of `measurements` (its minimum over normals).
-pub(super) fn weighted_statistic(chi: &ChiSquare, measurements: &[Measurement]) -> Option<f64> {
-    weighted_fit(chi, measurements).map(|f| f.chi2)
-}
-
-/// Condition number of the lights' (unweighted) matrix, as the kernel reports it.
-fn condition_of(measurements: &[Measurement]) -> f64 {
-    let a: Matrix3<f64> = measurements.iter().map(|m| m.l * m.l.transpose()).sum();
-    a.try_inverse()
-        .map_or(f64::INFINITY, |inv| (a.norm() * inv.norm()).sqrt())
-}
-
-impl WeightedFit {
-    /// The colour solves with the same weights, in the kernel's shape.
-    fn into_fit(
-        self,
-        chi: &ChiSquare,
-        measurements: &[Measurement],
-        condition: f64,
-        rejected: bool,
-    ) -> Fit {
-        let mut b_rgb = [Vector3::zeros(); 3];
-        for m in measurements {
-            // The luminance weights serve the colour channels too: their noise is proportional.
-            let w = 1.0 / chi.variance(m);
-            for c in 0..3 {
-                b_rgb[c] += m.l * (m.rgb[c] * w);
-            }
-        }
-        let condition = if rejected {
-            condition_of(measurements)
-        } else {
-            condition
-        };
-        Fit {
-            n_lum: self.n_lum,
-            n_rgb: b_rgb.map(|b| self.cov * b),
-            a_inv: self.cov,
-            weighted: true,
-            condition,
-            residual: None,
-            kind: if rejected {
-                PixelFit::Robust
-            } else {
-                PixelFit::LeastSquares
-            },
-        }
-    }
 }
 
 /// The light whose removal lowers the chi-square statistic most, if its studentised residual

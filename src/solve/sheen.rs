@@ -20,9 +20,9 @@
 use nalgebra::{Matrix2, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::kernel::{Fit, Measurement};
+use super::chi_square::ChiSquare;
+use super::measure::{Fit, Measurement};
 use super::predict::tangent_basis;
-use super::robust::Context;
 use super::{PixelFit, LUMINANCE_WEIGHTS};
 use crate::error::{Error, Result};
 
@@ -206,7 +206,8 @@ const ITERATIONS: usize = 12;
 /// to a normal facing the camera's side.
 pub(super) fn fit(
     model: &SheenModel,
-    context: &Context,
+    chi: &ChiSquare,
+    view: &Vector3<f64>,
     measurements: &[Measurement],
     lambert: &Fit,
 ) -> Option<(Fit, f64)> {
@@ -214,16 +215,15 @@ pub(super) fn fit(
     if !(4..=MAX_LIGHTS_SHEEN).contains(&m) {
         return None;
     }
-    let chi = context.kernel.chi_square();
     let f0 = model.luminance_f0();
     let mut problem = Problem {
         measurements,
         geometry: [LightGeometry::default(); MAX_LIGHTS_SHEEN],
         weights: [0.0; MAX_LIGHTS_SHEEN],
-        view: context.view,
+        view: *view,
     };
     for (k, meas) in measurements.iter().enumerate() {
-        problem.geometry[k] = LightGeometry::new(f0, &meas.l, &context.view);
+        problem.geometry[k] = LightGeometry::new(f0, &meas.l, view);
         problem.weights[k] = 1.0 / chi.variance(meas);
     }
     let from_lambert = lambert
@@ -242,8 +242,8 @@ pub(super) fn fit(
     } else {
         // Few lights: a steep flank, possibly seen at a grazing angle; more lights that fail
         // the test: a shadowed light pulled the first descent off, and the spiral's best
-        // normal is enough (the full search on every such pixel took the 16 MP shadows +
-        // sheen solve from 113 s to 177 s for 2 % less error).
+        // normal is enough (the full search on every such pixel cost far more time than the
+        // error it saved: docs/solve.md).
         let (normals, starts) = if m <= GLOBAL_SEARCH_MAX_LIGHTS {
             (search_normals(), SEARCH_STARTS)
         } else {
@@ -267,9 +267,8 @@ pub(super) fn fit(
 }
 
 /// Fits with at most this many lights always also start from a coarse search of the
-/// hemisphere (more lights: only where the first minimum fails the chi-square test). On the
-/// synthetic velvet at 4 MP the pixels solved from 4-6 lights were 10-60 degrees off on average
-/// from the Lambertian start alone, those from 7 or more within a degree.
+/// hemisphere (more lights: only where the first minimum fails the chi-square test): with so
+/// few lights the Lambertian start alone often lands in the wrong minimum (docs/solve.md).
 const GLOBAL_SEARCH_MAX_LIGHTS: usize = 6;
 
 /// Normals of the search's spiral (the first of [`search_normals`]).
@@ -285,11 +284,9 @@ const HORIZON_RINGS_Z: [f64; 4] = [0.01, 0.035, 0.07, 0.12];
 const HORIZON_RING_COUNT: usize = 72;
 
 /// Normals of the coarse search: a Fibonacci spiral of 256 normals over the hemisphere facing
-/// the camera's side (z > 0), about 9 degrees apart, and 4 rings of 72 near the horizon. On
-/// the synthetic velvet without noise, the spiral alone with one descent left 67 of the 279
-/// pixels steeper than 80 degrees over 2 degrees off (20 degrees on average); with the rings
-/// and five descents none (`tests/estimators.rs`; with three, one pixel was still 75 degrees
-/// off).
+/// the camera's side (z > 0), about 9 degrees apart, and 4 rings of 72 near the horizon: the
+/// spiral alone, with one descent, leaves steep pixels in the wrong minimum (docs/solve.md;
+/// `tests/estimators.rs` checks the steep pixels of the synthetic velvet).
 fn search_normals() -> &'static [Vector3<f64>] {
     static NORMALS: std::sync::OnceLock<Vec<Vector3<f64>>> = std::sync::OnceLock::new();
     NORMALS.get_or_init(|| {

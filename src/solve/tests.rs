@@ -205,7 +205,10 @@ fn svd_and_normal_equations_agree_on_well_conditioned_pixels() {
     let noise = NoiseModel::from_sensor(&rig.sensor);
     let fast = solve_with(&frames, &rig, noise, &SolveOptions::default());
     let svd_options = SolveOptions {
-        method: Method::Svd,
+        kernel: KernelChoice::Exact {
+            method: Method::Svd,
+            estimator: Estimator::default(),
+        },
         ..SolveOptions::default()
     };
     let svd = solve_with(&frames, &rig, noise, &svd_options);
@@ -296,8 +299,7 @@ fn degenerate_pixels_are_masked_with_their_reason_and_never_nan() {
         .flat_map(|m| Estimator::ALL.map(|e| (m, e)))
     {
         let options = SolveOptions {
-            method,
-            estimator,
+            kernel: KernelChoice::Exact { method, estimator },
             ..SolveOptions::default()
         };
         let result = solve_with(&frames, &rig, noise, &options);

@@ -25,19 +25,20 @@ fn run(rig: &Rig, frames: &Frames, options: &SolveOptions, mask: Option<&Mask>) 
 
 /// Plain least squares, exact kernel: what the streaming kernel must reproduce.
 fn exact_ls() -> SolveOptions {
+    SolveOptions::exact(Estimator::LeastSquares)
+}
+
+/// The streaming kernel with `estimator`.
+fn streaming_with(estimator: Estimator, precision: Precision, tiles: Option<f64>) -> SolveOptions {
     SolveOptions {
-        estimator: Estimator::LeastSquares,
-        ..SolveOptions::default()
+        kernel: KernelChoice::new(estimator, Method::NormalEquations, precision, tiles, true)
+            .unwrap(),
+        ..exact_ls()
     }
 }
 
 fn streaming(precision: Precision, tiles: Option<f64>) -> SolveOptions {
-    SolveOptions {
-        precision,
-        tile_tolerance_deg: tiles,
-        streaming_kernel: true,
-        ..exact_ls()
-    }
+    streaming_with(Estimator::LeastSquares, precision, tiles)
 }
 
 /// Frames with bad values planted: NaN, infinity and saturation in a few pixels.
@@ -183,23 +184,44 @@ fn pixels_outside_the_mask_are_not_touched() {
     }
 }
 
+/// The kernel choice cannot be built for what the streaming kernel cannot run: the robust
+/// estimator, the SVD method, a tile tolerance outside (0, 1]; each refusal names its cause.
 #[test]
-fn the_robust_estimator_refuses_the_streaming_options() {
-    let rig = Rig::default_rig();
-    let (_, frames) = render_scene(&rig, SceneKind::Lambertian, 0.01, &Silent).unwrap();
-    let input = SolveInput {
-        frames: &frames,
-        lights: LightSource::Rig(&rig),
-        noise: bench_noise(&rig),
-        exposure: 1.0,
-        mask: None,
+fn the_kernel_choice_refuses_what_the_streaming_kernel_cannot_run() {
+    let (ne, svd) = (Method::NormalEquations, Method::Svd);
+    let refused = |e: Estimator, m: Method, p: Precision, t: Option<f64>, s: bool| {
+        KernelChoice::new(e, m, p, t, s).unwrap_err().to_string()
     };
-    let options = SolveOptions {
-        estimator: Estimator::Robust,
-        ..streaming(Precision::F32, None)
-    };
-    let err = solve(&input, &options, &Silent).unwrap_err().to_string();
-    assert!(err.contains("--estimator adaptive"), "{err}");
+    for (precision, tiles, streaming) in [
+        (Precision::F32, None, false),
+        (Precision::F64, Some(0.01), false),
+        (Precision::F64, None, true),
+    ] {
+        let robust = refused(Estimator::Robust, ne, precision, tiles, streaming);
+        assert!(robust.contains("--estimator adaptive"), "{robust}");
+        let svd = refused(Estimator::LeastSquares, svd, precision, tiles, streaming);
+        assert!(svd.contains("SVD"), "{svd}");
+    }
+    for t in [0.0, -0.5, 1.5, f64::NAN, f64::INFINITY] {
+        let tiles = refused(Estimator::LeastSquares, ne, Precision::F32, Some(t), false);
+        assert!(tiles.contains("tile tolerance"), "{tiles}");
+    }
+    // The exact kernel runs everything; the robust estimator and SVD keep it where the
+    // default kernel would be the streaming one, and a streaming kernel refuses to become
+    // robust.
+    for estimator in Estimator::ALL {
+        for method in [ne, svd] {
+            let exact = KernelChoice::new(estimator, method, Precision::F64, None, false);
+            assert_eq!(exact.unwrap(), KernelChoice::Exact { method, estimator });
+        }
+    }
+    let robust = KernelChoice::exact(Estimator::Robust);
+    assert_eq!(robust.fast_where_possible(), robust);
+    let fast = KernelChoice::exact(Estimator::Adaptive).fast_where_possible();
+    assert!(fast.streaming() && fast.estimator() == Estimator::Adaptive);
+    assert!(fast.with_estimator(Estimator::Robust).is_err());
+    let ls = fast.with_estimator(Estimator::LeastSquares).unwrap();
+    assert_eq!(ls, KernelChoice::fast(StreamingEstimator::LeastSquares));
 }
 
 /// The adaptive estimator on the streaming kernel: every pixel its screen sends on is solved
@@ -214,19 +236,12 @@ fn streaming_adaptive_escalates_through_the_exact_kernel() {
     let n = frames.width * frames.height;
     let mut mask = Mask::new(frames.width, frames.height, true);
     mask.data[n / 2 + 11] = false;
-    let adaptive = SolveOptions {
-        estimator: Estimator::Adaptive,
-        ..exact_ls()
-    };
+    let adaptive = SolveOptions::exact(Estimator::Adaptive);
     let exact = run(&rig, &frames, &adaptive, Some(&mask));
     let fast = run(
         &rig,
         &frames,
-        &SolveOptions {
-            precision: Precision::F32,
-            streaming_kernel: true,
-            ..adaptive
-        },
+        &streaming_with(Estimator::Adaptive, Precision::F32, None),
         Some(&mask),
     );
     let ls = run(&rig, &frames, &exact_ls(), Some(&mask));
@@ -293,10 +308,7 @@ fn reused_outputs_give_the_same_results_as_fresh_ones() {
         exposure: 1.0,
         mask,
     };
-    let robust = SolveOptions {
-        estimator: Estimator::Robust,
-        ..SolveOptions::default()
-    };
+    let robust = SolveOptions::exact(Estimator::Robust);
     let predicted = SolveOptions {
         predict_error: true,
         ..streaming(Precision::F32, Some(0.01))
@@ -341,8 +353,11 @@ fn the_default_kernel_stays_within_its_stated_tolerance() {
     for kind in [SceneKind::Lambertian, SceneKind::Shadows] {
         let (_, frames) = render_scene(&rig, kind, MP, &Silent).unwrap();
         let default = exact_ls().with_default_kernel();
-        assert_eq!(default.precision, Precision::F32);
-        assert_eq!(default.tile_tolerance_deg, Some(DEFAULT_TILE_TOLERANCE_DEG));
+        assert_eq!(default.kernel.precision(), Precision::F32);
+        assert_eq!(
+            default.kernel.tile_tolerance_deg(),
+            Some(DEFAULT_TILE_TOLERANCE_DEG)
+        );
         let exact_ls_result = run(&rig, &frames, &exact_ls(), None);
         let exact = &exact_ls_result;
         let fast = run(&rig, &frames, &default, None);
@@ -355,10 +370,7 @@ fn the_default_kernel_stays_within_its_stated_tolerance() {
             }
         }
 
-        let adaptive = SolveOptions {
-            estimator: Estimator::Adaptive,
-            ..exact_ls()
-        };
+        let adaptive = SolveOptions::exact(Estimator::Adaptive);
         let exact = run(&rig, &frames, &adaptive, None);
         let fast = run(&rig, &frames, &adaptive.clone().with_default_kernel(), None);
         assert_eq!(fast.status, exact.status);

@@ -15,7 +15,7 @@
 use nalgebra::{Matrix3, Vector3};
 
 use super::lights::Illumination;
-use crate::eval::angle_deg;
+use crate::math::angle_deg;
 
 /// Tile sizes tried, largest first. A chunk of the kernel's 16 lanes inside one tile
 /// interpolates from one node column; one that crosses a tile border fills a per-lane table,
