@@ -86,7 +86,7 @@ fn main() {
     };
     for variant in bench::variants() {
         // Every variant is timed with fresh and with reused outputs below.
-        if variant.options.method == solve::Method::Svd
+        if variant.options.kernel.method() == solve::Method::Svd
             || variant.reuse_outputs
             || !variant.name.contains(&only)
         {

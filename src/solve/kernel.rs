@@ -223,6 +223,11 @@ impl<'a> Kernel<'a> {
         fit.filter(|f| f.condition <= self.options.max_condition)
     }
 
+    /// The options this kernel solves with.
+    pub(super) fn options(&self) -> &SolveOptions {
+        self.options
+    }
+
     pub(super) fn chi_square(&self) -> &ChiSquare {
         &self.chi_square
     }

@@ -326,7 +326,6 @@ pub fn solve_reusing(
     result.escalated = match &options.kernel {
         KernelChoice::Streaming(streaming) => solve_streaming(
             input,
-            options,
             streaming,
             &illumination,
             &kernel,
@@ -402,7 +401,6 @@ fn needs_sheen_everywhere(options: &SolveOptions, result: &SolveResult) -> bool 
 /// how many pixels the robust fit ran on.
 fn solve_streaming(
     input: &SolveInput,
-    options: &SolveOptions,
     streaming: &Streaming,
     illumination: &Illumination,
     kernel: &kernel::Kernel,
@@ -410,6 +408,7 @@ fn solve_streaming(
     progress: &dyn Progress,
     reused: bool,
 ) -> usize {
+    let options = kernel.options();
     let (w, h) = (input.frames.width, input.frames.height);
     let planned = streaming
         .tiles
