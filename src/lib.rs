@@ -19,6 +19,7 @@ pub mod emulated;
 pub mod error;
 pub mod eval;
 pub mod fsutil;
+pub mod io;
 pub mod maps;
 pub mod offline;
 pub mod pipeline;

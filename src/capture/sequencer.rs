@@ -34,7 +34,7 @@ pub struct CaptureOptions {
     /// Ground truth of a synthetic scene, recorded in a new set's manifest.
     pub synthetic: Option<SyntheticInfo>,
     /// The calibration bundle the rig came from, recorded in a new set's manifest.
-    pub calibration: Option<crate::calibration::bundle::CalibrationRef>,
+    pub calibration: Option<crate::rig::CalibrationRef>,
 }
 
 impl Default for CaptureOptions {

@@ -133,7 +133,7 @@ mod tests {
             ..Placement::default()
         });
         let chess = Chessboard {
-            board: crate::calibration::camera::Board::parse("9x6", 15.0).unwrap(),
+            board: crate::rig::Board::parse("9x6", 15.0).unwrap(),
             border_squares: 1.0,
         };
         let cam = TargetCamera::new(Rig::default_rig(), chess, stage.clone(), Box::new(probe), 1);

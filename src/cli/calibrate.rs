@@ -6,12 +6,13 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::{Args, Subcommand, ValueEnum};
-use psscan::calibration::camera::{self, Board, CameraOptions};
+use psscan::calibration::camera::{self, CameraOptions};
 use psscan::calibration::capture::{self, Captured, Simulated};
-use psscan::calibration::graychart::ChartDescription;
 use psscan::calibration::wizard::{ChartVerdict, Step, TargetSource, Wizard, VIEWS_NEEDED};
 use psscan::capture::camera::{Camera, LitSource};
 use psscan::capture::emulator::PinLog;
+use psscan::rig::Board;
+use psscan::rig::ChartDescription;
 
 use super::calibrate_steps::{self as steps, BundleArgs, GraychartArgs, TableArgs, WhitesheetArgs};
 use super::capture::{interrupt_on_ctrl_c, open_camera, Controller, PortArgs};

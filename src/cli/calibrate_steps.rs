@@ -12,11 +12,13 @@
 use std::path::{Path, PathBuf};
 
 use clap::Args;
-use psscan::calibration::camera::{Board, CameraCalibration};
+use psscan::calibration::camera::CameraCalibration;
 use psscan::calibration::files::{self, LINEAR_EXTENSIONS, RAW_EXTENSIONS};
-use psscan::calibration::graychart::{ChartDescription, ChartRect, ChartReport};
+use psscan::calibration::graychart::ChartReport;
 use psscan::calibration::steps::{self, BundleInputs, TableStep, WhiteSheetStep};
 use psscan::fsutil::{write_atomic, StagedDir};
+use psscan::rig::Board;
+use psscan::rig::{ChartDescription, ChartRect};
 
 use super::calibrate::BoardArgs;
 use super::progress::Bars;

@@ -10,9 +10,8 @@ use rand_xoshiro::Xoshiro256PlusPlus;
 use rayon::prelude::*;
 
 use super::sensor::{expose, Noise};
-use crate::calibration::camera::Board;
 use crate::plane::{Frames, GrayImage, LightFrame, RgbPlanes, SensorWindow};
-use crate::rig::{Camera, Rig};
+use crate::rig::{Board, Camera, Rig};
 
 /// A printed chessboard: the calibration's [`Board`] plus a white border of `border_squares`
 /// squares around the pattern.
@@ -734,7 +733,7 @@ pub fn flat_target_frames(
 /// rectangle `[x0, x1, y0, y1]` (metres; row 0 at the top of the image, world +y), on a dark
 /// mount (0.2) around it.
 pub fn gray_chart(
-    chart: &crate::calibration::graychart::ChartDescription,
+    chart: &crate::rig::ChartDescription,
     world: [f64; 4],
 ) -> impl Fn(f64, f64) -> [f64; 3] + Sync + '_ {
     let [x0, x1, y0, y1] = world;
@@ -755,15 +754,12 @@ pub fn gray_chart(
 /// image (the projection of its world corners: what a user marks).
 pub fn gray_chart_mosaics(
     rig: &Rig,
-    chart: &crate::calibration::graychart::ChartDescription,
+    chart: &crate::rig::ChartDescription,
     world: [f64; 4],
     (width, height, step): (usize, usize, f64),
     exposure: f64,
     seed: u64,
-) -> (
-    Vec<crate::raw::Mosaic>,
-    crate::calibration::graychart::ChartRect,
-) {
+) -> (Vec<crate::raw::Mosaic>, crate::rig::ChartRect) {
     let window = SensorWindow::centred(
         rig.camera.width as usize,
         rig.camera.height as usize,
@@ -805,7 +801,7 @@ pub fn gray_chart_mosaics(
     let (bx, by) = to_image(x1, y0);
     (
         mosaics,
-        crate::calibration::graychart::ChartRect {
+        crate::rig::ChartRect {
             x0: ax,
             y0: ay,
             x1: bx,

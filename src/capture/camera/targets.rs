@@ -14,14 +14,13 @@ use std::time::Duration;
 
 use super::sim::LitSource;
 use super::{Camera, Shot};
-use crate::calibration::graychart::ChartDescription;
 use crate::capture::emulator::unix_now_us;
 use crate::capture::interrupt::Interrupt;
 use crate::capture::manifest::{CameraSettings, ImageInfo};
 use crate::error::{Error, Result};
 use crate::plane::{RgbPlanes, SensorWindow};
 use crate::raw::{encode_png16, DnImage, Levels};
-use crate::rig::Rig;
+use crate::rig::{ChartDescription, Rig};
 use crate::synth::targets::{self, BoardPose, Chessboard, RayGrid, ViewRender};
 use crate::synth::{expose, Noise};
 
@@ -267,8 +266,8 @@ impl Camera for TargetCamera {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::calibration::camera::Board;
     use crate::capture::lights::{LightController, MockLights};
+    use crate::rig::Board;
 
     #[test]
     fn the_target_is_lit_by_the_leds_that_are_on() {
