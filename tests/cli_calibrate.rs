@@ -261,7 +261,7 @@ fn led_errors_m(bundle: &psscan::calibration::bundle::Bundle) -> Vec<f64> {
 /// at its end.
 #[cfg(feature = "opencv")]
 fn pins(path: &Path) -> (usize, Vec<usize>) {
-    let history = psscan::capture::emulator::PinLog::new(path).read().unwrap();
+    let history = psscan::sim::emulator::PinLog::new(path).read().unwrap();
     (history.max_lit_together(), history.lit_now())
 }
 

@@ -12,8 +12,8 @@ use std::time::{Duration, Instant};
 use psscan::calibration::camera::Board;
 use psscan::calibration::steps::{PixelToWorldCheck, TableStep};
 use psscan::calibration::table::TablePose;
-use psscan::capture::emulator::{Emulator, EmulatorFiles};
 use psscan::rig::Rig;
+use psscan::sim::emulator::{Emulator, EmulatorFiles};
 
 mod common;
 use common::{psscan, s, stderr};

@@ -520,9 +520,9 @@ fn stopped(writer: &CaptureSetWriter, what: &str, cause: Error, lights: &SharedL
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::capture::camera::SimCamera;
     use crate::capture::lights::{MockFault, MockLights};
     use crate::progress::Silent;
+    use crate::sim::SimCamera;
     use crate::synth::SynthSpec;
 
     fn spec() -> SynthSpec {

@@ -120,9 +120,9 @@ fn confirm(device: &str, led: Option<usize>, state: &LightState, when: &str) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::capture::camera::{Placement, Stage, Target, TargetCamera};
     use crate::capture::lights::{MockFault, MockLights};
     use crate::rig::Rig;
+    use crate::sim::{Placement, Stage, Target, TargetCamera};
     use crate::synth::targets::Chessboard;
 
     fn camera(probe: crate::capture::lights::MockProbe) -> (TargetCamera, Stage) {

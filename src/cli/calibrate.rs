@@ -7,12 +7,12 @@ use std::time::Duration;
 
 use clap::{Args, Subcommand, ValueEnum};
 use psscan::calibration::camera::{self, CameraOptions};
-use psscan::calibration::capture::{self, Captured, Simulated};
+use psscan::calibration::capture::Captured;
 use psscan::calibration::wizard::{ChartVerdict, Step, TargetSource, Wizard, VIEWS_NEEDED};
-use psscan::capture::camera::{Camera, LitSource};
-use psscan::capture::emulator::PinLog;
+use psscan::capture::camera::Camera;
 use psscan::rig::Board;
 use psscan::rig::ChartDescription;
+use psscan::sim::operator::{simulated_camera, Simulated};
 
 use super::calibrate_steps::{self as steps, BundleArgs, GraychartArgs, TableArgs, WhitesheetArgs};
 use super::capture::{interrupt_on_ctrl_c, open_camera, Controller, PortArgs};
@@ -239,16 +239,15 @@ fn open_source(
     let interrupt = interrupt_on_ctrl_c()?;
     let controller = Controller::open(&args.port, args.pin_log.as_deref())?;
     let camera = args.port.camera_or_default(&args.camera);
-    let (camera, sim): (Box<dyn Camera>, _) = if camera == "sim" {
-        let lit: Box<dyn LitSource> = match (&controller.emulated, &args.pin_log) {
-            (Some(emulated), _) => Box::new(emulated.pin_log()),
-            (None, Some(path)) => Box::new(PinLog::new(path)),
-            (None, None) => Box::new(psscan::capture::camera::sim::ControllerState(
-                controller.lights.clone(),
-            )),
-        };
-        let (camera, scene) = capture::simulated_camera(hand, board, args.seed, lit);
-        (Box::new(camera), Some(scene))
+    type Operator = Option<Box<dyn psscan::calibration::capture::Operator>>;
+    let (camera, operator): (Box<dyn Camera>, Operator) = if camera == "sim" {
+        let lit = psscan::sim::lit_source(
+            controller.emulated.as_ref(),
+            args.pin_log.as_deref(),
+            &controller.lights,
+        );
+        let (camera, scene) = simulated_camera(hand, board, args.seed, lit);
+        (Box::new(camera), Some(Box::new(scene)))
     } else {
         let timeout = Duration::from_secs_f64(args.shot_timeout_s.max(0.1));
         (open_camera(&camera, None, timeout)?, None)
@@ -258,7 +257,7 @@ fn open_source(
         hand,
         controller.lights.clone(),
         camera,
-        sim,
+        operator,
         Duration::from_millis(args.settle_ms),
         interrupt,
     )?;

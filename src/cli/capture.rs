@@ -5,16 +5,14 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use clap::{Args, Subcommand};
-use psscan::capture::camera::sim::ControllerState;
-use psscan::capture::camera::{Camera, CommandCamera, LitSource};
-use psscan::capture::emulator::PinLog;
+use psscan::capture::camera::{Camera, CommandCamera};
 use psscan::capture::lights::{
     list_ports, resolve_port, SerialLights, SerialOptions, SharedLights,
 };
 use psscan::capture::{
     run_capture, CaptureOptions, CaptureReport, CaptureSet, FrameStatus, Interrupt,
 };
-use psscan::emulated::{capture_synthetic, EmulatedController, FirmwareSimDemoSummary};
+use psscan::sim::emulated::{capture_synthetic, EmulatedController, FirmwareSimDemoSummary};
 use serde::Serialize;
 
 use super::progress::Bars;
@@ -192,11 +190,11 @@ pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()
     let shot_timeout = Duration::from_secs_f64(args.shot_timeout_s.max(0.1));
     let camera = args.port.camera_or_default(&args.camera);
     let report = if camera == "sim" {
-        let source: Box<dyn LitSource> = match (&controller.emulated, &args.pin_log) {
-            (Some(emulated), _) => Box::new(emulated.pin_log()),
-            (None, Some(path)) => Box::new(PinLog::new(path)),
-            (None, None) => Box::new(ControllerState(controller.lights.clone())),
-        };
+        let source = psscan::sim::lit_source(
+            controller.emulated.as_ref(),
+            args.pin_log.as_deref(),
+            &controller.lights,
+        );
         capture_synthetic(
             &args.out,
             &rig,
@@ -510,7 +508,7 @@ pub fn demo_firmware_sim(
     bars: &Bars,
 ) -> anyhow::Result<()> {
     let interrupt = interrupt_on_ctrl_c()?;
-    let summary = psscan::emulated::run_firmware_sim_demo(
+    let summary = psscan::sim::emulated::run_firmware_sim_demo(
         out,
         &scene.spec(),
         job,

@@ -605,10 +605,7 @@ pub fn table_view(rig: &Rig, board: &Chessboard, step: f64, seed: u64) -> GrayIm
 
 /// Image size of the whole sensor taken every `step` pixels.
 pub fn binned_size(rig: &Rig, step: f64) -> (usize, usize) {
-    (
-        (rig.camera.width as f64 / step).floor() as usize,
-        (rig.camera.height as f64 / step).floor() as usize,
-    )
+    rig.camera.binned_size(step)
 }
 
 /// The rig as it was actually built, for calibration tests: the lens's real focal lengths,

@@ -1,16 +1,13 @@
-//! Cameras the sequencer can fire: a tethered DSLR through libgphoto2 (feature `gphoto2`),
-//! any external command that takes a photograph into a file, and a simulated camera that
-//! renders the synthetic textile lit by whichever LEDs are actually on, and its sibling that
-//! photographs the calibration targets the same way.
+//! Cameras the sequencer can fire: a tethered DSLR through libgphoto2 (feature `gphoto2`)
+//! and any external command that takes a photograph into a file. The simulated cameras
+//! implement the same [`Camera`] trait in the `sim` module, which the CLI wires in.
 
 pub mod command;
 #[cfg(feature = "gphoto2")]
 pub mod gphoto;
-pub mod sim;
-pub mod targets;
 
 use std::path::Path;
-use std::time::Duration;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use serde::Serialize;
 
@@ -21,8 +18,6 @@ use crate::raw::Levels;
 use crate::rig::Rig;
 
 pub use command::CommandCamera;
-pub use sim::{LitSource, SimCamera, SimOutput};
-pub use targets::{Placement, Stage, Target, TargetCamera};
 
 use crate::error::Result;
 
@@ -75,4 +70,12 @@ pub fn extension_of(name: &str) -> Option<String> {
     let ext = Path::new(name).extension()?.to_str()?;
     (!ext.is_empty() && ext.chars().all(|c| c.is_ascii_alphanumeric()))
         .then(|| ext.to_ascii_lowercase())
+}
+
+/// Now, as Unix microseconds (the clock the pin log's `start_unix_us` uses).
+pub fn unix_now_us() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_micros() as u64)
+        .unwrap_or(0)
 }

@@ -12,9 +12,8 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use super::sim::LitSource;
-use super::{Camera, Shot};
-use crate::capture::emulator::unix_now_us;
+use super::camera::LitSource;
+use crate::capture::camera::{unix_now_us, Camera, Shot};
 use crate::capture::interrupt::Interrupt;
 use crate::capture::manifest::{CameraSettings, ImageInfo};
 use crate::error::{Error, Result};
