@@ -56,10 +56,6 @@ const KNOWN_UPWARD: &[(&str, &str)] = &[("pipeline", "synth"), ("solve", "eval")
 const KNOWN_CYCLIC: &[&str] = &[
     "eval",
     "solve",
-    "calibration::lights",
-    "calibration::whitesheet",
-    "cli::calibrate",
-    "cli::calibrate_steps",
     "raw::decode",
     "raw::guard",
     "solve::adaptive",

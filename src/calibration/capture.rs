@@ -14,6 +14,7 @@ use nalgebra::Vector3;
 
 use super::wizard::TargetSource;
 use crate::capture::camera::Camera;
+use crate::capture::exposure::prepare_controller;
 use crate::capture::lights::SharedLights;
 use crate::capture::{run_capture, shoot_one, CaptureOptions, CaptureSet, Interrupt};
 use crate::error::{Error, Result};
@@ -122,21 +123,7 @@ impl Captured {
         settle: Duration,
         interrupt: Interrupt,
     ) -> Result<Captured> {
-        {
-            let mut l = lights.lock();
-            let firmware = l.identify()?;
-            if hand.leds.len() > firmware.leds {
-                return Err(Error::device(
-                    l.name(),
-                    format!(
-                        "the rig has {} LEDs but the controller drives only {}",
-                        hand.leds.len(),
-                        firmware.leds
-                    ),
-                ));
-            }
-            l.off()?;
-        }
+        prepare_controller(&lights, hand.leds.len(), None)?;
         crate::fsutil::create_dir_all(&dir.join("shots"))?;
         Ok(Captured {
             dir: dir.to_path_buf(),

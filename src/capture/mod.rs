@@ -5,6 +5,7 @@
 
 pub mod camera;
 pub mod diligent;
+pub mod exposure;
 pub mod frame_check;
 pub mod interrupt;
 pub mod lights;

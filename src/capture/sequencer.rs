@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 use super::camera::{Camera, Shot};
+use super::exposure::{prepare_controller, settle_fire_confirm, switch_and_confirm};
 use super::interrupt::Interrupt;
 use super::lights::{FirmwareInfo, Keepalive, LightState, SharedLights};
 use super::manifest::{CameraSettings, FrameKind, SyntheticInfo, MANIFEST_FILE};
@@ -148,26 +149,7 @@ pub fn run_capture(
     let total = Instant::now();
     let (mut writer, dropped) = open_set(dir, rig, camera, options)?;
     let controller = lights.lock().name();
-    let setup = (|| -> Result<(FirmwareInfo, u32)> {
-        let mut l = lights.lock();
-        let firmware = l.identify()?;
-        if rig.leds.len() > firmware.leds {
-            return Err(Error::device(
-                l.name(),
-                format!(
-                    "the rig has {} LEDs but the controller drives only {}",
-                    rig.leds.len(),
-                    firmware.leds
-                ),
-            ));
-        }
-        if let Some(ms) = options.light_timeout_ms {
-            l.set_timeout(ms)?;
-        }
-        l.off()?;
-        let timeout_ms = l.state()?.timeout_ms;
-        Ok((firmware, timeout_ms))
-    })();
+    let setup = prepare_controller(lights, rig.leds.len(), options.light_timeout_ms);
     let (firmware, timeout_ms) = match setup {
         Ok(v) => v,
         Err(e) => return Err(stopped(&writer, "setting up the LED controller", e, lights)),
@@ -379,36 +361,18 @@ fn shoot(
     };
     check_interrupt()?;
     let expected = planned.light();
-    let state_before = {
-        let mut l = lights.lock();
-        match expected {
-            Some(k) => l.on(k)?,
-            None => l.off()?,
-        }
-        let state = l.state()?;
-        confirm(&**l, planned, &state, "before the shot")?;
-        state
-    };
-    {
-        let _lease = keepalive.lease(options.settle + Duration::from_secs(1));
-        if !interrupt.sleep(options.settle) {
-            check_interrupt()?;
-        }
-    }
+    let state_before = switch_and_confirm(lights, expected)?;
     let scratch = scratch_path(writer.dir(), planned);
     let stored = (|| -> Result<(Shot, String)> {
-        let shot: Shot = {
-            let _lease = keepalive.lease(camera.max_shot_time());
-            camera.capture(&scratch, interrupt)?
-        };
-        // Ctrl-C during the shot: the keepalive thread may have switched the LED off
-        // mid-exposure, so this frame is not kept.
-        check_interrupt()?;
-        {
-            let mut l = lights.lock();
-            let state = l.state()?;
-            confirm(&**l, planned, &state, "after the shot")?;
-        }
+        let shot = settle_fire_confirm(
+            lights,
+            keepalive,
+            camera,
+            expected,
+            &scratch,
+            options.settle,
+            interrupt,
+        )?;
         let bytes = std::fs::read(&scratch).map_err(|e| Error::io(&scratch, e))?;
         let file = planned.file(&shot.extension);
         check_frame(writer, &file, &bytes).map_err(|m| Error::device(camera.name(), m))?;
@@ -454,41 +418,6 @@ fn check_frame(
     };
     let sha = crate::fsutil::sha256_hex(bytes);
     super::frame_check::check(file, bytes, &sha, &manifest.image, &others, raw_size).map(|_| ())
-}
-
-/// The controller's state must be the planned one; for a light frame after the shot,
-/// `tripped=0` proves the LED stayed on the whole time.
-fn confirm(
-    controller: &dyn super::lights::LightController,
-    planned: Planned,
-    state: &LightState,
-    when: &str,
-) -> Result<()> {
-    let expected = planned.light();
-    if state.on == expected && !(expected.is_some() && state.tripped) {
-        return Ok(());
-    }
-    let is = match state.on {
-        Some(k) => format!("LED {k} on"),
-        None => "all LEDs off".into(),
-    };
-    let want = match expected {
-        Some(k) => format!("LED {k} on"),
-        None => "all LEDs off".into(),
-    };
-    let why = if state.tripped {
-        format!(
-            " (tripped=1: the firmware switched the LED off by itself after {} ms without a \
-             word from the host; the host or camera stalled)",
-            state.timeout_ms
-        )
-    } else {
-        String::new()
-    };
-    Err(Error::device(
-        controller.name(),
-        format!("{when}: reports {is}, expected {want}{why}"),
-    ))
 }
 
 /// The error for a session that stopped: LEDs off (or why not), what is kept, how to go on.

@@ -14,7 +14,9 @@ use psscan::rig::Board;
 use psscan::rig::ChartDescription;
 use psscan::sim::operator::{simulated_camera, Simulated};
 
-use super::calibrate_steps::{self as steps, BundleArgs, GraychartArgs, TableArgs, WhitesheetArgs};
+use super::calibrate_steps::{
+    self as steps, BoardArgs, BundleArgs, GraychartArgs, TableArgs, WhitesheetArgs,
+};
 use super::capture::{interrupt_on_ctrl_c, open_camera, Controller, PortArgs};
 use super::progress::Bars;
 use super::{load_rig, print_json};
@@ -39,16 +41,6 @@ enum CalibrateStep {
     Whitesheet(WhitesheetArgs),
     /// Assemble the steps' results into a calibration bundle that captures and solves cite.
     Bundle(BundleArgs),
-}
-
-#[derive(Args)]
-pub(super) struct BoardArgs {
-    /// Inner corners of the chessboard, COLSxROWS.
-    #[arg(long, default_value = "9x6")]
-    pub(super) board: String,
-    /// Side of one square in millimetres.
-    #[arg(long, default_value_t = 25.0)]
-    pub(super) square_mm: f64,
 }
 
 #[derive(Args)]
@@ -160,7 +152,7 @@ pub fn calibrate(args: &CalibrateArgs, json: bool, bars: &Bars) -> anyhow::Resul
 }
 
 fn camera_step(args: &CameraArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
-    let board = Board::parse(&args.board.board, args.board.square_mm)?;
+    let board = args.board.parse()?;
     let files = camera::image_files(&args.images)?;
     let (views, size) = camera::detect_files(&files, &board, args.subpix_window, bars)?;
     let options = CameraOptions {

@@ -20,9 +20,26 @@ use psscan::fsutil::{write_atomic, StagedDir};
 use psscan::rig::Board;
 use psscan::rig::{ChartDescription, ChartRect};
 
-use super::calibrate::BoardArgs;
 use super::progress::Bars;
 use super::{load_rig, print_json};
+
+/// The chessboard target's flags, shared by the wizard's camera step and the table step.
+#[derive(Args)]
+pub(super) struct BoardArgs {
+    /// Inner corners of the chessboard, COLSxROWS.
+    #[arg(long, default_value = "9x6")]
+    pub(super) board: String,
+    /// Side of one square in millimetres.
+    #[arg(long, default_value_t = 25.0)]
+    pub(super) square_mm: f64,
+}
+
+impl BoardArgs {
+    /// The board the flags describe.
+    pub(super) fn parse(&self) -> psscan::Result<Board> {
+        Board::parse(&self.board, self.square_mm)
+    }
+}
 
 #[derive(Args)]
 pub struct TableArgs {
@@ -165,7 +182,7 @@ fn write_toml<T: serde::Serialize>(path: &Path, value: &T) -> anyhow::Result<()>
 }
 
 pub fn table(args: &TableArgs, json: bool) -> anyhow::Result<()> {
-    let board = Board::parse(&args.board.board, args.board.square_mm)?;
+    let board = args.board.parse()?;
     let camera: CameraCalibration = steps::load_toml(&args.camera, "camera")?;
     let result = steps::table_from_file(&args.image, &board, &camera)?;
     if let Some(out) = &args.out {
