@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use super::camera::{Camera, Shot};
 use super::interrupt::Interrupt;
-use super::lights::{FirmwareInfo, Keepalive, LightState, SharedLights};
+use super::lights::{describe_on, FirmwareInfo, Keepalive, LightState, SharedLights};
 use crate::error::{Error, Result};
 
 /// Identifies the controller, checks that it drives all `leds` LEDs of the rig, sets its
@@ -93,10 +93,6 @@ fn confirm(device: &str, led: Option<usize>, state: &LightState, when: &str) -> 
     if state.on == led && !(led.is_some() && state.tripped) {
         return Ok(());
     }
-    let say = |on: Option<usize>| match on {
-        Some(k) => format!("LED {k} on"),
-        None => "all LEDs off".to_string(),
-    };
     let why = if state.tripped {
         format!(
             " (tripped=1: the firmware switched the LED off by itself after {} ms without a \
@@ -110,8 +106,8 @@ fn confirm(device: &str, led: Option<usize>, state: &LightState, when: &str) -> 
         device,
         format!(
             "{when}: reports {}, expected {}{why}",
-            say(state.on),
-            say(led)
+            describe_on(state.on),
+            describe_on(led)
         ),
     ))
 }

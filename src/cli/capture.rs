@@ -5,9 +5,10 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use clap::{Args, Subcommand};
-use psscan::capture::camera::{Camera, CommandCamera};
+use psscan::capture::camera::{self, Camera, CameraSpec};
 use psscan::capture::lights::{
-    list_ports, resolve_port, SerialLights, SerialOptions, SharedLights,
+    describe_on, list_ports, resolve_port, test_leds, LedCheck, LedTest, SerialLights,
+    SerialOptions, SharedLights,
 };
 use psscan::capture::{
     run_capture, CaptureOptions, CaptureReport, CaptureSet, FrameStatus, Interrupt,
@@ -225,43 +226,24 @@ pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()
     Ok(())
 }
 
+/// Opens the camera `--camera` names (not `sim`), turning the library's errors into the
+/// flag's hints.
 pub(super) fn open_camera(
     spec: &str,
     frame_ext: Option<&str>,
     shot_timeout: Duration,
 ) -> anyhow::Result<Box<dyn Camera>> {
-    if let Some(template) = spec.strip_prefix("cmd:") {
-        return Ok(Box::new(CommandCamera::new(
-            template,
-            frame_ext,
-            shot_timeout,
-        )?));
+    let spec = CameraSpec::parse(spec).map_err(|e| anyhow::anyhow!("--{e}"))?;
+    match camera::open_camera(&spec, frame_ext, shot_timeout) {
+        Err(psscan::Error::Unsupported(m)) if spec == CameraSpec::Gphoto2 => {
+            Err(psscan::Error::Unsupported(format!(
+                "--camera gphoto2: {m}, or use --camera 'cmd:gphoto2 \
+                 --capture-image-and-download --filename {{out}}'"
+            ))
+            .into())
+        }
+        other => Ok(other?),
     }
-    match spec {
-        "gphoto2" => open_gphoto2(shot_timeout),
-        other => Err(psscan::Error::Invalid(format!(
-            "--camera {other:?}: expected gphoto2, sim, or cmd:TEMPLATE"
-        ))
-        .into()),
-    }
-}
-
-#[cfg(feature = "gphoto2")]
-fn open_gphoto2(shot_timeout: Duration) -> anyhow::Result<Box<dyn Camera>> {
-    Ok(Box::new(
-        psscan::capture::camera::gphoto::Gphoto2Camera::open(shot_timeout)?,
-    ))
-}
-
-#[cfg(not(feature = "gphoto2"))]
-fn open_gphoto2(_: Duration) -> anyhow::Result<Box<dyn Camera>> {
-    Err(psscan::Error::Unsupported(
-        "--camera gphoto2: this psscan was built without libgphoto2; rebuild with `cargo build \
-         --release --features gphoto2` (needs libgphoto2-dev), or use \
-         --camera 'cmd:gphoto2 --capture-image-and-download --filename {out}'"
-            .into(),
-    )
-    .into())
 }
 
 fn print_capture(r: &CaptureReport) {
@@ -327,13 +309,6 @@ enum LightsCommand {
     },
     /// Switch all LEDs off.
     Off,
-}
-
-#[derive(Serialize)]
-struct LedCheck {
-    led: usize,
-    ok: bool,
-    state: String,
 }
 
 pub fn lights(args: &LightsArgs, json: bool) -> anyhow::Result<()> {
@@ -405,36 +380,21 @@ pub fn lights(args: &LightsArgs, json: bool) -> anyhow::Result<()> {
             }
         }
         LightsCommand::Test { dwell_ms } => {
-            let leds = lights.lock().identify()?.leds;
-            let mut checks = Vec::new();
-            for led in 0..leds {
-                let state = {
-                    let mut l = lights.lock();
-                    l.on(led)?;
-                    l.state()?
-                };
-                let ok = state.on == Some(led) && !state.tripped;
+            let mut show = |c: &LedCheck| {
                 if !json {
-                    println!(
-                        "LED {led}: {}  ({})",
-                        if ok { "ok" } else { "WRONG" },
-                        describe_on(state.on)
-                    );
+                    let verdict = if c.ok { "ok" } else { "WRONG" };
+                    println!("LED {}: {verdict}  ({})", c.led, c.state);
                 }
-                checks.push(LedCheck {
-                    led,
-                    ok,
-                    state: describe_on(state.on),
-                });
-                if !interrupt.sleep(Duration::from_millis(*dwell_ms)) {
-                    break;
-                }
-            }
-            lights.lock().off()?;
+            };
+            let dwell = Duration::from_millis(*dwell_ms);
+            let LedTest {
+                checks,
+                interrupted,
+            } = test_leds(&lights, dwell, &interrupt, &mut show)?;
             if json {
                 print_json(&checks);
             }
-            if interrupt.is_set() {
+            if interrupted {
                 return Err(psscan::Error::Interrupted(
                     "LED test stopped; all LEDs are off".into(),
                 )
@@ -489,13 +449,6 @@ fn lit_list(lit: &[usize]) -> String {
         [] => "all LEDs off".into(),
         [k] => format!("LED {k} on"),
         many => format!("LEDs {many:?} on together"),
-    }
-}
-
-fn describe_on(on: Option<usize>) -> String {
-    match on {
-        Some(k) => format!("LED {k} on"),
-        None => "all LEDs off".into(),
     }
 }
 
