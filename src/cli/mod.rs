@@ -902,6 +902,12 @@ fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
             script.display()
         );
     }
+    if !psscan::alloc::COUNTING {
+        eprintln!(
+            "psscan bench: peak memory is not measured: this psscan was built without the \
+             count-alloc feature (cargo build --release --features count-alloc)"
+        );
+    }
     // The output folder is checked before the long run, and written whole at the end: it
     // is the bench's own (replaced without --force), never a folder of other files.
     psscan::fsutil::check_replaceable(&args.out, true, &[])?;
