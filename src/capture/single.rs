@@ -32,10 +32,7 @@ pub fn shoot_one(
             let leds = lights.off_and_report();
             Err(match e {
                 Error::Interrupted(m) => Error::Interrupted(format!("{m}; {leds}")),
-                Error::Device { device, message } => Error::Device {
-                    device,
-                    message: format!("{message}; {leds}"),
-                },
+                e @ (Error::Device { .. } | Error::Link { .. }) => e.with_aftermath(leds),
                 other => other,
             })
         }

@@ -78,6 +78,28 @@ impl Drop for ScratchFile {
     }
 }
 
+/// A port that could not be opened because it is not there: where to find the ports.
+fn port_hint(e: psscan::Error) -> anyhow::Error {
+    use psscan::error::{LinkError, PortProblem};
+    let missing = matches!(
+        &e,
+        psscan::Error::Link {
+            source: LinkError::Unopened {
+                problem: PortProblem::NoDevice | PortProblem::NotFound,
+                ..
+            },
+            ..
+        }
+    );
+    let text = format!("{e}; `psscan lights ports` lists the ports");
+    let e = anyhow::Error::from(e);
+    if missing {
+        e.context(text)
+    } else {
+        e
+    }
+}
+
 impl Controller {
     /// Opens the controller. With `--firmware-sim` the emulator's pin log goes to `pin_log`
     /// when given, else to a scratch folder.
@@ -99,7 +121,7 @@ impl Controller {
             });
         }
         let port = resolve_port(&args.port)?;
-        let serial = SerialLights::open(&port, args.serial_options())?;
+        let serial = SerialLights::open(&port, args.serial_options()).map_err(port_hint)?;
         Ok(Controller {
             lights: SharedLights::new(Box::new(serial)),
             emulated: None,
