@@ -412,7 +412,7 @@ pub fn lights(args: &LightsArgs, json: bool) -> anyhow::Result<()> {
             let LedTest {
                 checks,
                 interrupted,
-            } = test_leds(&lights, dwell, &interrupt, &mut show)?;
+            } = test_leds(lights, dwell, &interrupt, &mut show)?;
             if json {
                 print_json(&checks);
             }
