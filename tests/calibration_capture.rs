@@ -5,11 +5,11 @@
 
 use std::time::Duration;
 
-use psscan::calibration::camera::Board;
 use psscan::calibration::capture::Captured;
 use psscan::calibration::wizard::Wizard;
 use psscan::capture::lights::{MockLights, SharedLights};
 use psscan::capture::Interrupt;
+use psscan::rig::Board;
 use psscan::rig::Rig;
 use psscan::sim::operator::simulated_camera;
 use psscan::sim::LitSource;
