@@ -2,8 +2,8 @@
 //! away from the hand measurements, a real lens), the poses at which the board is held, and
 //! the two ways the wizard's photographs are simulated: [`Simulated`] renders the targets
 //! directly (`--source sim`), and [`SimScene`] places them in front of the simulated
-//! [`TargetCamera`] for a [`Captured`](crate::calibration::capture::Captured) source, which photographs them through the LED
-//! controller.
+//! [`TargetCamera`] for a [`Captured`](crate::calibration::capture::Captured) source, which
+//! photographs them through the LED controller.
 
 use nalgebra::Vector3;
 
@@ -164,8 +164,8 @@ impl TargetSource for Simulated {
     }
 }
 
-/// The simulated side of a [`Captured`](crate::calibration::capture::Captured) source: the operator and the stage the simulated
-/// camera photographs.
+/// The simulated side of a [`Captured`](crate::calibration::capture::Captured) source: the
+/// operator (an [`Operator`]) and the stage the simulated camera photographs.
 pub struct SimScene {
     pub truth: Rig,
     pub stage: Stage,
@@ -176,8 +176,9 @@ pub struct SimScene {
     seed: u64,
 }
 
-/// The simulated camera for a [`Captured`](crate::calibration::capture::Captured) source on `hand`'s rig as built (seeded, the same
-/// as-built rig [`Simulated`] has), reading the lit LEDs from `lit`.
+/// The simulated camera for a [`Captured`](crate::calibration::capture::Captured) source on
+/// `hand`'s rig as built (seeded, the same as-built rig [`Simulated`] has), reading the lit
+/// LEDs from `lit`; the scene is the operator to pass to the source.
 pub fn simulated_camera(
     hand: &Rig,
     board: Board,
