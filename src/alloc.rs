@@ -1,6 +1,7 @@
 //! Allocation helpers: a counting global allocator, so benchmarks can report peak heap memory
-//! of one stage (the `psscan` binary installs it; the library only reads the counters, zero
-//! when not installed), and the hint that backs large output buffers with huge pages.
+//! of one stage (the `psscan` binary installs it when built with the `count-alloc` feature,
+//! [`COUNTING`]; the library only reads the counters, zero when not installed), and the hint
+//! that backs large output buffers with huge pages.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -8,6 +9,10 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 static CURRENT: AtomicUsize = AtomicUsize::new(0);
 static PEAK: AtomicUsize = AtomicUsize::new(0);
 static INSTALLED: AtomicBool = AtomicBool::new(false);
+
+/// Whether this build installs [`CountingAlloc`] in the `psscan` binary (feature
+/// `count-alloc`); without it the counters stay at zero and peak memory is not measured.
+pub const COUNTING: bool = cfg!(feature = "count-alloc");
 
 /// The system allocator, counting live bytes and their peak.
 pub struct CountingAlloc;

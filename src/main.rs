@@ -2,7 +2,9 @@
 
 mod cli;
 
-// Counts heap bytes so `psscan bench` can report the solve's peak memory.
+// Counts heap bytes so `psscan bench` can report the solve's peak memory (feature
+// `count-alloc`; other builds keep the system allocator).
+#[cfg(feature = "count-alloc")]
 #[global_allocator]
 static ALLOC: psscan::alloc::CountingAlloc = psscan::alloc::CountingAlloc;
 

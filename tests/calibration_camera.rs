@@ -5,9 +5,10 @@
 
 use std::path::Path;
 
-use psscan::calibration::camera::{self, Board, CameraOptions, DetectedView};
+use psscan::calibration::camera::{self, CameraOptions, DetectedView};
 use psscan::calibration::table;
 use psscan::progress::Silent;
+use psscan::rig::Board;
 use psscan::rig::Rig;
 use psscan::synth::targets::{self, Chessboard};
 

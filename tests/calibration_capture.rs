@@ -5,13 +5,14 @@
 
 use std::time::Duration;
 
-use psscan::calibration::camera::Board;
-use psscan::calibration::capture::{simulated_camera, Captured};
+use psscan::calibration::capture::Captured;
 use psscan::calibration::wizard::Wizard;
-use psscan::capture::camera::LitSource;
 use psscan::capture::lights::{MockLights, SharedLights};
 use psscan::capture::Interrupt;
+use psscan::rig::Board;
 use psscan::rig::Rig;
+use psscan::sim::operator::simulated_camera;
+use psscan::sim::LitSource;
 
 #[test]
 fn opencv_capture_source_views_are_lit_by_what_the_controller_has_on() {
@@ -34,7 +35,7 @@ fn opencv_capture_source_views_are_lit_by_what_the_controller_has_on() {
             &hand,
             SharedLights::new(Box::new(mock)),
             Box::new(camera),
-            Some(scene),
+            Some(Box::new(scene)),
             Duration::from_millis(1),
             Interrupt::new(),
         )

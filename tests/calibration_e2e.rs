@@ -5,11 +5,12 @@
 //! true rig's.
 #![cfg(feature = "opencv")]
 
-use psscan::calibration::camera::{self, Board, CameraOptions};
+use psscan::calibration::camera::{self, CameraOptions};
 use psscan::calibration::{lights, table, whitesheet};
 use psscan::plane::{Frames, LightFrame};
 use psscan::progress::Silent;
 use psscan::raw::Levels;
+use psscan::rig::Board;
 use psscan::rig::Rig;
 use psscan::solve::{self, LightSource, NoiseModel, SolveInput, SolveOptions};
 use psscan::synth::targets::{self, Chessboard};

@@ -1,8 +1,9 @@
 //! The gray chart on the synthetic rig: white-balance gains from the CFA values against the
 //! sensor's known channel response, the linearity fit, and clipped patches flagged.
 
-use psscan::calibration::graychart::{self, ChartDescription, Shading};
+use psscan::calibration::graychart::{self, Shading};
 use psscan::plane::SensorWindow;
+use psscan::rig::ChartDescription;
 use psscan::rig::Rig;
 use psscan::synth::targets;
 
@@ -50,14 +51,13 @@ fn white_balance_and_linearity_from_the_cfa_values() {
 }
 
 mod wizard_step {
-    use psscan::calibration::camera::Board;
-    use psscan::calibration::graychart::ChartDescription;
     use psscan::calibration::wizard::{Step, TargetSource, Wizard};
     use psscan::error::{Error, Result};
     use psscan::plane::{Frames, GrayImage, SensorWindow};
     use psscan::progress::{Progress, Silent};
     use psscan::raw::Mosaic;
     use psscan::rig::Rig;
+    use psscan::rig::{Board, ChartDescription};
     use psscan::synth::targets;
 
     /// The chart on the table of `rig` (here the hand rig is the truth, so the shading model

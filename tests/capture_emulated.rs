@@ -13,16 +13,17 @@ use std::path::Path;
 use std::rc::Rc;
 use std::time::Duration;
 
-use psscan::capture::camera::{Camera, Shot, SimCamera};
-use psscan::capture::emulator::{PinHistory, PinLog};
+use psscan::capture::camera::{Camera, Shot};
 use psscan::capture::lights::{LightController, LineNoise, SerialLights, SerialOptions};
 use psscan::capture::{
     run_capture, CameraSettings, CaptureOptions, CaptureReport, CaptureSet, ImageInfo, Interrupt,
 };
-use psscan::emulated::{capture_synthetic, write_scene_truth, EmulatedController};
 use psscan::pipeline::{self, SolveJob};
 use psscan::progress::Silent;
 use psscan::rig::Rig;
+use psscan::sim::emulated::{capture_synthetic, write_scene_truth, EmulatedController};
+use psscan::sim::emulator::{PinHistory, PinLog};
+use psscan::sim::SimCamera;
 use psscan::synth::SynthSpec;
 use psscan::{Error, Result};
 
@@ -407,9 +408,8 @@ fn garbage_on_the_line_is_retried_once_then_named_and_resume_completes_the_set()
     let dir = tmp.path().join("noisy");
     let run = tmp.path().join("run1");
     std::fs::create_dir_all(&run).unwrap();
-    let files = psscan::capture::emulator::EmulatorFiles::locate().unwrap();
-    let emulator =
-        psscan::capture::emulator::Emulator::start(&files, &run.join("pins.log")).unwrap();
+    let files = psscan::sim::emulator::EmulatorFiles::locate().unwrap();
+    let emulator = psscan::sim::emulator::Emulator::start(&files, &run.join("pins.log")).unwrap();
     let mut serial = SerialLights::open(emulator.pty(), SerialOptions::default()).unwrap();
     serial.set_line_noise(Some(LineNoise {
         command: "ON 2".into(),
@@ -438,8 +438,7 @@ fn garbage_on_the_line_is_retried_once_then_named_and_resume_completes_the_set()
     let dir = tmp.path().join("broken");
     let run = tmp.path().join("run2");
     std::fs::create_dir_all(&run).unwrap();
-    let emulator =
-        psscan::capture::emulator::Emulator::start(&files, &run.join("pins.log")).unwrap();
+    let emulator = psscan::sim::emulator::Emulator::start(&files, &run.join("pins.log")).unwrap();
     let mut serial = SerialLights::open(emulator.pty(), SerialOptions::default()).unwrap();
     serial.set_line_noise(Some(LineNoise {
         command: "ON 4".into(),

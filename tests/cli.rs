@@ -90,7 +90,7 @@ fn normal_png_matches_the_exr_and_directx_flips_green() {
     ]));
     let png_gl = image::open(gl.join("normal.png")).unwrap().into_rgb16();
     let png_dx = image::open(dx.join("normal.png")).unwrap().into_rgb16();
-    let exr = psscan::maps::write::read_exr(&gl.join("normal.exr"), &["R", "G", "B"]).unwrap();
+    let exr = psscan::io::read_exr(&gl.join("normal.exr"), &["R", "G", "B"]).unwrap();
     let decode = |v: u16| v as f32 / 65535.0 * 2.0 - 1.0;
     for (i, (a, b)) in png_gl.pixels().zip(png_dx.pixels()).enumerate() {
         for c in 0..3 {

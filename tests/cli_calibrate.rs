@@ -12,10 +12,11 @@ use std::process::Output;
 mod common;
 
 use common::{psscan, s};
-use psscan::calibration::graychart::{self, ChartDescription, Shading};
+use psscan::calibration::graychart::{self, Shading};
 use psscan::calibration::steps::WhiteSheetStep;
 use psscan::plane::{Frames, SensorWindow};
 use psscan::raw::{encode_dng, DngStorage, RawMeta};
+use psscan::rig::ChartDescription;
 use psscan::rig::Rig;
 use psscan::synth::targets;
 #[cfg(feature = "opencv")]
@@ -261,7 +262,7 @@ fn led_errors_m(bundle: &psscan::calibration::bundle::Bundle) -> Vec<f64> {
 /// at its end.
 #[cfg(feature = "opencv")]
 fn pins(path: &Path) -> (usize, Vec<usize>) {
-    let history = psscan::capture::emulator::PinLog::new(path).read().unwrap();
+    let history = psscan::sim::emulator::PinLog::new(path).read().unwrap();
     (history.max_lit_together(), history.lit_now())
 }
 
@@ -498,7 +499,7 @@ fn distance_mm(a: [f64; 3], b: [f64; 3]) -> f64 {
 fn write_exr_frames(frames: &Frames, dir: &Path) {
     std::fs::create_dir_all(dir).unwrap();
     for (k, f) in frames.lights.iter().enumerate() {
-        psscan::maps::write::write_exr(
+        psscan::io::write_exr(
             &dir.join(format!("L{k:02}.exr")),
             &[("R", &f.rgb.r), ("G", &f.rgb.g), ("B", &f.rgb.b)],
         )
@@ -945,9 +946,10 @@ fn whitesheet_bundle_and_the_citation_in_captures_and_solves() {
 #[cfg(feature = "opencv")]
 #[test]
 fn opencv_every_step_over_files_then_bundle_capture_and_solve() {
-    use psscan::calibration::camera::{Board, CameraCalibration};
+    use psscan::calibration::camera::CameraCalibration;
     use psscan::calibration::steps::{self, TableStep};
     use psscan::calibration::table;
+    use psscan::rig::Board;
     use psscan::synth::targets::Chessboard;
 
     let tmp = tempfile::tempdir().unwrap();

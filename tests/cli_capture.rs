@@ -7,8 +7,8 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use psscan::capture::emulator::{Emulator, EmulatorFiles};
 use psscan::capture::CaptureSet;
+use psscan::sim::emulator::{Emulator, EmulatorFiles};
 mod common;
 
 use common::{json, psscan, s, stderr};

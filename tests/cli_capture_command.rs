@@ -7,9 +7,9 @@
 
 use std::path::{Path, PathBuf};
 
-use psscan::capture::emulator::{Emulator, EmulatorFiles};
 use psscan::capture::CaptureSet;
 use psscan::raw::{encode_dng, DngStorage, Mosaic, RawMeta};
+use psscan::sim::emulator::{Emulator, EmulatorFiles};
 
 mod common;
 

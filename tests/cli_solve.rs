@@ -85,8 +85,8 @@ fn count(report: &Value, group: &str, key: &str) -> u64 {
 }
 
 fn normals(dir: &Path) -> [psscan::plane::Plane; 3] {
-    let planes = psscan::maps::write::read_exr(&dir.join("maps/normal.exr"), &["R", "G", "B"])
-        .expect("normal.exr");
+    let planes =
+        psscan::io::read_exr(&dir.join("maps/normal.exr"), &["R", "G", "B"]).expect("normal.exr");
     [planes[0].clone(), planes[1].clone(), planes[2].clone()]
 }
 
@@ -257,9 +257,8 @@ fn normal_only_gives_the_same_normals_and_a_grey_albedo() {
     let moved = max_angle(&normals(full_dir.path()), &normals(only_dir.path()));
     assert!(moved < 1e-3, "{moved} deg");
     assert!((mean_error(&full) - mean_error(&only)).abs() < 1e-3);
-    let albedo =
-        psscan::maps::write::read_exr(&only_dir.path().join("maps/albedo.exr"), &["R", "G", "B"])
-            .expect("albedo.exr");
+    let albedo = psscan::io::read_exr(&only_dir.path().join("maps/albedo.exr"), &["R", "G", "B"])
+        .expect("albedo.exr");
     for i in 0..W * H {
         assert_eq!(albedo[0].data[i], albedo[1].data[i]);
         assert_eq!(albedo[1].data[i], albedo[2].data[i]);

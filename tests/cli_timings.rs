@@ -162,10 +162,10 @@ fn the_default_kernel_is_within_its_tolerance_of_the_exact_one() {
         assert_eq!(exact["options"]["precision"], "f64");
         assert!(exact["options"]["tile_tolerance_deg"].is_null());
         let read = |dir: &Path| {
-            psscan::maps::write::read_exr(&dir.join("maps/normal.exr"), &["R", "G", "B"]).unwrap()
+            psscan::io::read_exr(&dir.join("maps/normal.exr"), &["R", "G", "B"]).unwrap()
         };
         let (a, b) = (read(fast_dir.path()), read(exact_dir.path()));
-        let condition = psscan::maps::write::read_exr(
+        let condition = psscan::io::read_exr(
             &exact_dir.path().join("maps/confidence.exr"),
             &["condition"],
         )

@@ -9,11 +9,11 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use psscan::calibration::camera::Board;
 use psscan::calibration::steps::{PixelToWorldCheck, TableStep};
 use psscan::calibration::table::TablePose;
-use psscan::capture::emulator::{Emulator, EmulatorFiles};
+use psscan::rig::Board;
 use psscan::rig::Rig;
+use psscan::sim::emulator::{Emulator, EmulatorFiles};
 
 mod common;
 use common::{psscan, s, stderr};

@@ -10,8 +10,8 @@ use std::sync::OnceLock;
 mod common;
 
 use common::{json, psscan, s, stderr};
+use psscan::io::read_exr;
 use psscan::maps::derive::height::{range, rms_after_plane};
-use psscan::maps::write::read_exr;
 use psscan::plane::Plane;
 use psscan::rig::Rig;
 use psscan::synth::textile::Textile;

@@ -501,7 +501,9 @@ pub fn run(options: &BenchOptions, progress: &dyn Progress) -> Result<BenchResul
             }
             drop(exact);
             if kind == SceneKind::Lambertian {
-                memory.push(measure_memory(&rig, &frames, kind, mp)?);
+                if crate::alloc::COUNTING {
+                    memory.push(measure_memory(&rig, &frames, kind, mp)?);
+                }
                 let grid = solve::tiles::plan(
                     &solve::Illumination::new(
                         &LightSource::Rig(&rig),

@@ -25,7 +25,7 @@ use super::table::TablePose;
 use super::whitesheet::{Flatness, SheetLight};
 use crate::error::{Error, Result};
 use crate::fsutil::{create_dir_all, sha256_file, sha256_hex, write_atomic};
-use crate::maps::write::{read_exr, write_exr};
+use crate::io::{read_exr, write_exr};
 use crate::plane::Plane;
 use crate::rig::Rig;
 use crate::solve::GainGrid;
@@ -35,17 +35,8 @@ pub const RIG_FILE: &str = "rig.toml";
 pub const INDEX_FILE: &str = "bundle.toml";
 pub const GAINS_FILE: &str = "light_gains.toml";
 
-/// What a capture manifest and a solve report record of the bundle they used.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct CalibrationRef {
-    /// The bundle's id (`<rig>/<name>/<checksum prefix>`).
-    pub id: String,
-    /// The bundle's checksum (module docs).
-    pub sha256: String,
-    /// Where the bundle was when it was cited (absolute when it could be resolved).
-    pub path: PathBuf,
-}
+// moved: issue 15, the lead removes this at merge
+pub use crate::rig::CalibrationRef;
 
 /// `light_gains.toml`: one gain grid per LED.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

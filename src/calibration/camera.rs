@@ -11,6 +11,8 @@ use super::cv::{self, PatternSize};
 use crate::error::{Error, Result};
 use crate::plane::{GrayImage, SensorWindow};
 use crate::progress::Progress;
+// moved: issue 15, the lead removes this at merge
+pub use crate::rig::Board;
 
 /// A view whose RMS reprojection error is more than this many times the median of the views
 /// is rejected: with every view seeing the same board through the same lens, errors differ
@@ -20,68 +22,6 @@ pub const OUTLIER_FACTOR: f64 = 3.0;
 
 /// Fewer views than this cannot pin down focal length, principal point and distortion.
 pub const MIN_VIEWS: usize = 4;
-
-/// A chessboard target: inner corners and square size.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Board {
-    pub cols: usize,
-    pub rows: usize,
-    pub square_m: f64,
-}
-
-impl Board {
-    /// Parses `9x6` (inner corners) and a square size in millimetres.
-    pub fn parse(pattern: &str, square_mm: f64) -> Result<Board> {
-        let bad = || {
-            Error::Invalid(format!(
-                "board `{pattern}`: expected inner corners as COLSxROWS, for example 9x6"
-            ))
-        };
-        let (c, r) = pattern.split_once(['x', 'X']).ok_or_else(bad)?;
-        let cols: usize = c.trim().parse().map_err(|_| bad())?;
-        let rows: usize = r.trim().parse().map_err(|_| bad())?;
-        if cols < 3 || rows < 3 {
-            return Err(Error::Invalid(format!(
-                "board `{pattern}`: needs at least 3x3 inner corners"
-            )));
-        }
-        if !(square_mm.is_finite() && square_mm > 0.0) {
-            return Err(Error::Invalid(format!(
-                "square size must be a positive number of millimetres, got {square_mm}"
-            )));
-        }
-        Ok(Board {
-            cols,
-            rows,
-            square_m: square_mm / 1000.0,
-        })
-    }
-
-    pub fn pattern(&self) -> PatternSize {
-        PatternSize {
-            cols: self.cols,
-            rows: self.rows,
-        }
-    }
-
-    /// Inner corners in the board frame, row by row (x along a row, y down the columns).
-    pub fn object_points(&self) -> Vec<[f64; 3]> {
-        (0..self.rows)
-            .flat_map(|j| {
-                (0..self.cols)
-                    .map(move |i| [i as f64 * self.square_m, j as f64 * self.square_m, 0.0])
-            })
-            .collect()
-    }
-
-    /// Centre of the inner-corner grid in the board frame.
-    pub fn centre(&self) -> [f64; 2] {
-        [
-            0.5 * (self.cols - 1) as f64 * self.square_m,
-            0.5 * (self.rows - 1) as f64 * self.square_m,
-        ]
-    }
-}
 
 /// Pinhole intrinsics with OpenCV's distortion model, in the pixels of the images they were
 /// measured on.
@@ -169,7 +109,7 @@ pub fn detect(
 ) -> Result<DetectedView> {
     Ok(DetectedView {
         name: name.to_string(),
-        corners: cv::find_corners(image, board.pattern(), half_window)?,
+        corners: cv::find_corners(image, PatternSize::of(board), half_window)?,
     })
 }
 
@@ -212,7 +152,7 @@ pub fn detect_files(
                 height: 1,
                 data: vec![0],
             },
-            board.pattern(),
+            PatternSize::of(board),
             None,
         )?;
     }

@@ -1,25 +1,20 @@
-//! Where the wizard's photographs come from.
-//!
-//! - [`Simulated`] (`--source sim`): the synthetic rig (an as-built rig that differs from the
-//!   hand measurements, as a real one does) renders the targets directly, with an operator who
-//!   now and then holds the board half out of the frame. Quick; no LEDs, no camera.
-//! - [`Captured`] (`--source capture`): every photograph is taken through the capture module:
-//!   the LED controller (a board on `--port`, or the real firmware in its emulator) switches
-//!   the LEDs, and a camera (tethered through gphoto2, or the simulated one that photographs
-//!   the target the simulated operator put down, lit by the LEDs the firmware has on) fires.
-//!   Chessboard views are single shots; the gray chart and the white sheet are capture sets
-//!   shot by the sequencer into the bundle folder (`captures/`), so an interrupted one is
-//!   completed, not restarted, when the wizard runs again.
+//! Where the wizard's photographs come from when they are taken through the capture module
+//! ([`Captured`]): the LED controller (a board on a serial port, or the real firmware in its
+//! emulator) switches the LEDs, and a camera fires. Chessboard views are single shots; the gray
+//! chart and the white sheet are capture sets shot by the sequencer into the bundle folder
+//! (`captures/`), so an interrupted one is completed, not restarted, when the wizard runs
+//! again. Whoever puts the targets in front of the camera is an [`Operator`]: a person at the
+//! wizard's prompts (none given), or the simulated one in the `sim` module, which also has
+//! the simulated source that renders the targets directly.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use nalgebra::Vector3;
 
-use super::camera::Board;
-use super::graychart::ChartDescription;
 use super::wizard::TargetSource;
-use crate::capture::camera::{Camera, LitSource, Placement, Stage, Target, TargetCamera};
+use crate::capture::camera::Camera;
+use crate::capture::exposure::prepare_controller;
 use crate::capture::lights::SharedLights;
 use crate::capture::{run_capture, shoot_one, CaptureOptions, CaptureSet, Interrupt};
 use crate::error::{Error, Result};
@@ -29,9 +24,8 @@ use crate::raw::{
     decode_dn_image, decode_frame, decode_raw, develop_frames, DevelopOptions, Encoding, Levels,
     Mosaic, Resolution,
 };
-use crate::rig::Rig;
+use crate::rig::{ChartDescription, Rig};
 use crate::solve::LUMINANCE_WEIGHTS;
-use crate::synth::targets::{self, BoardPose, Chessboard, RayGrid, ViewRender};
 
 /// Chessboard views are the sensor binned 4x.
 pub const VIEW_STEP: f64 = 4.0;
@@ -39,58 +33,14 @@ pub const VIEW_STEP: f64 = 4.0;
 pub const SHEET_STEP: f64 = 8.0;
 /// The gray chart is read at the views' resolution (its patches need a few hundred samples).
 pub const CHART_STEP: f64 = VIEW_STEP;
-/// The simulated rig's white sheet: its true reflectance and fibre texture.
-const SIM_SHEET_REFLECTANCE: f64 = 0.9;
-const SIM_SHEET_TEXTURE: f64 = 0.02;
-/// The simulated camera's exposure for the flat targets: the exposure captures use, so the
-/// gray chart measures the linearity where the textile will be measured.
-const SIM_FLAT_EXPOSURE: f64 = 1.0;
-
-/// The simulated operator: where the board is held for each photograph.
-pub struct Operator {
-    pub chess: Chessboard,
-    poses: Vec<BoardPose>,
-}
-
-impl Operator {
-    /// Poses sweeping the frame of `truth`'s camera, seen through the views' window.
-    pub fn new(truth: &Rig, board: Board, seed: u64) -> Operator {
-        let chess = Chessboard {
-            board,
-            border_squares: 1.0,
-        };
-        let (w, h) = targets::binned_size(truth, VIEW_STEP);
-        let distance = truth.camera.position_m[2] - truth.sample.z_m;
-        let poses = targets::calibration_poses(
-            &chess,
-            &truth.camera,
-            view_window(truth),
-            (w, h),
-            64,
-            0.85 * distance,
-            seed,
-        );
-        Operator { chess, poses }
-    }
-
-    /// The board for photograph `attempt`: every fifth one the operator has it half out of
-    /// the frame.
-    pub fn pose(&self, attempt: usize) -> BoardPose {
-        if attempt % 5 == 4 {
-            BoardPose::facing_camera(&self.chess, Vector3::new(0.17, 0.0, 0.5), 0.1, -0.2, 0.1)
-        } else {
-            self.poses[attempt % self.poses.len()]
-        }
-    }
-}
-
 /// The chessboard views' window: the whole sensor binned by [`VIEW_STEP`].
 pub fn view_window(rig: &Rig) -> SensorWindow {
     binned_window(rig, VIEW_STEP)
 }
 
-fn binned_window(rig: &Rig, step: f64) -> SensorWindow {
-    let (w, h) = targets::binned_size(rig, step);
+/// The whole sensor binned by `step`.
+pub fn binned_window(rig: &Rig, step: f64) -> SensorWindow {
+    let (w, h) = rig.camera.binned_size(step);
     SensorWindow::centred(
         rig.camera.width as usize,
         rig.camera.height as usize,
@@ -98,146 +48,6 @@ fn binned_window(rig: &Rig, step: f64) -> SensorWindow {
         h,
         step,
     )
-}
-
-pub struct Simulated {
-    pub truth: Rig,
-    operator: Operator,
-    grid: RayGrid,
-    window: SensorWindow,
-    seed: u64,
-    sheets: u64,
-}
-
-impl Simulated {
-    /// The rig as built: `hand` with its LEDs up to 3 cm off and a real lens (seeded).
-    pub fn new(hand: &Rig, board: Board, seed: u64) -> Simulated {
-        let truth = targets::as_built(hand, 0.03, seed);
-        let (w, h) = targets::binned_size(&truth, VIEW_STEP);
-        let window = view_window(&truth);
-        let grid = RayGrid::new(
-            &truth.camera,
-            window,
-            w,
-            h,
-            ViewRender::default().supersample,
-        );
-        Simulated {
-            operator: Operator::new(&truth, board, seed),
-            truth,
-            grid,
-            window,
-            seed,
-            sheets: 0,
-        }
-    }
-}
-
-impl TargetSource for Simulated {
-    fn chessboard_view(&mut self, attempt: usize) -> Result<GrayImage> {
-        let render = ViewRender {
-            seed: self.seed.wrapping_add(attempt as u64),
-            ..ViewRender::default()
-        };
-        Ok(targets::render_chessboard(
-            &self.grid,
-            &self.operator.chess,
-            &self.operator.pose(attempt),
-            &render,
-        ))
-    }
-
-    fn table_view(&mut self) -> Result<GrayImage> {
-        Ok(targets::table_view(
-            &self.truth,
-            &self.operator.chess,
-            VIEW_STEP,
-            self.seed ^ 0x7ab1e,
-        ))
-    }
-
-    fn gray_chart(
-        &mut self,
-        chart: &ChartDescription,
-        world: [f64; 4],
-        _progress: &dyn Progress,
-    ) -> Result<(Vec<Mosaic>, SensorWindow)> {
-        let (w, h) = targets::binned_size(&self.truth, CHART_STEP);
-        let (mosaics, _) = targets::gray_chart_mosaics(
-            &self.truth,
-            chart,
-            world,
-            (w, h, CHART_STEP),
-            SIM_FLAT_EXPOSURE,
-            self.seed ^ 0xc4a7,
-        );
-        Ok((mosaics, binned_window(&self.truth, CHART_STEP)))
-    }
-
-    fn white_sheet(
-        &mut self,
-        _purpose: &str,
-        exposures: usize,
-        _progress: &dyn Progress,
-    ) -> Result<Frames> {
-        self.sheets += 1;
-        Ok(targets::white_sheet_frames(
-            &self.truth,
-            SHEET_STEP,
-            SIM_SHEET_REFLECTANCE,
-            SIM_SHEET_TEXTURE,
-            exposures,
-            self.seed.wrapping_mul(31).wrapping_add(self.sheets),
-        ))
-    }
-
-    fn view_window(&self) -> SensorWindow {
-        self.window
-    }
-}
-
-/// The simulated side of a [`Captured`] source: the operator and the stage the simulated
-/// camera photographs.
-pub struct SimScene {
-    pub truth: Rig,
-    pub stage: Stage,
-    operator: Operator,
-    /// Exposure of the chessboard views: a white print at the table centre under the view LED
-    /// at 40 % of the white level, so a board held nearer the LEDs does not clip.
-    view_exposure: f64,
-    seed: u64,
-}
-
-/// The simulated camera for a [`Captured`] source on `hand`'s rig as built (seeded, the same
-/// as-built rig [`Simulated`] has), reading the lit LEDs from `lit`.
-pub fn simulated_camera(
-    hand: &Rig,
-    board: Board,
-    seed: u64,
-    lit: Box<dyn LitSource>,
-) -> (TargetCamera, SimScene) {
-    let truth = targets::as_built(hand, 0.03, seed);
-    let operator = Operator::new(&truth, board, seed);
-    let stage = Stage::default();
-    let k = view_led(hand);
-    let centre = Vector3::new(0.0, 0.0, truth.sample.z_m);
-    let s = truth.leds[k].sample_at(&centre);
-    let white = s.falloff * s.direction.z * truth.led_rgb_power(k)[1] / truth.leds[k].power * 0.85;
-    let camera = TargetCamera::new(
-        truth.clone(),
-        operator.chess,
-        stage.clone(),
-        lit,
-        seed ^ 0xca11,
-    );
-    let scene = SimScene {
-        truth,
-        stage,
-        operator,
-        view_exposure: 0.4 / white,
-        seed,
-    };
-    (camera, scene)
 }
 
 /// The LED that lights the chessboard views and the board on the table: the one nearest the
@@ -258,13 +68,43 @@ pub fn view_led(rig: &Rig) -> usize {
         .expect("a rig has LEDs")
 }
 
+/// What the wizard needs in front of the camera for its next photographs.
+#[derive(Clone, Copy, Debug)]
+pub enum Placing<'a> {
+    /// The chessboard held up for chessboard view `attempt`.
+    ChessboardView(usize),
+    /// The chessboard lying flat on the table.
+    ChessboardOnTable,
+    /// The gray chart on the table, filling the world rectangle `[x0, x1, y0, y1]`.
+    GrayChart {
+        /// The chart's layout.
+        chart: &'a ChartDescription,
+        /// Where it lies on the table, in metres.
+        world: [f64; 4],
+    },
+    /// The white sheet on the table, for exposure `exposure` of the capture `purpose`.
+    WhiteSheet {
+        /// Which white-sheet capture (its folder name's stem).
+        purpose: &'a str,
+        /// Which of the capture's exposures.
+        exposure: usize,
+    },
+}
+
+/// Who puts the targets in front of the camera when no person does so at the wizard's
+/// prompts: the simulated operator, who places them where the simulated camera looks.
+pub trait Operator {
+    /// Puts `what` in front of the camera, to be photographed with frames binned by `step`.
+    fn place(&self, what: Placing, step: f64);
+}
+
 /// Photographs through the LED controller and a camera.
 pub struct Captured {
     dir: PathBuf,
     hand: Rig,
     lights: SharedLights,
     camera: Box<dyn Camera>,
-    sim: Option<SimScene>,
+    operator: Option<Box<dyn Operator>>,
     view_led: usize,
     settle: Duration,
     interrupt: Interrupt,
@@ -273,30 +113,17 @@ pub struct Captured {
 impl Captured {
     /// Opens the source: identifies the controller (it must drive every LED of `hand`) and
     /// switches all LEDs off. Shots and capture sets go under `dir` (the bundle folder).
+    /// `operator` places the targets; none: a person does, at the wizard's prompts.
     pub fn open(
         dir: &Path,
         hand: &Rig,
         lights: SharedLights,
         camera: Box<dyn Camera>,
-        sim: Option<SimScene>,
+        operator: Option<Box<dyn Operator>>,
         settle: Duration,
         interrupt: Interrupt,
     ) -> Result<Captured> {
-        {
-            let mut l = lights.lock();
-            let firmware = l.identify()?;
-            if hand.leds.len() > firmware.leds {
-                return Err(Error::device(
-                    l.name(),
-                    format!(
-                        "the rig has {} LEDs but the controller drives only {}",
-                        hand.leds.len(),
-                        firmware.leds
-                    ),
-                ));
-            }
-            l.off()?;
-        }
+        prepare_controller(&lights, hand.leds.len(), None)?;
         crate::fsutil::create_dir_all(&dir.join("shots"))?;
         Ok(Captured {
             dir: dir.to_path_buf(),
@@ -304,7 +131,7 @@ impl Captured {
             view_led: view_led(hand),
             lights,
             camera,
-            sim,
+            operator,
             settle,
             interrupt,
         })
@@ -315,21 +142,12 @@ impl Captured {
         self.view_led
     }
 
-    /// The simulated operator puts `target` in front of the simulated camera (a real operator
-    /// has done so at the wizard's prompt).
-    fn place(&self, target: impl FnOnce(&SimScene) -> Target, step: f64, exposure: f64, take: u64) {
-        if let Some(sim) = &self.sim {
-            sim.stage.place(Placement {
-                target: target(sim),
-                step,
-                exposure,
-                take,
-            });
+    /// The operator puts `what` in front of the camera (a person has done so at the wizard's
+    /// prompt).
+    fn place(&self, what: Placing, step: f64) {
+        if let Some(operator) = &self.operator {
+            operator.place(what, step);
         }
-    }
-
-    fn view_exposure(&self) -> f64 {
-        self.sim.as_ref().map_or(1.0, |s| s.view_exposure)
     }
 
     /// One photograph under the view LED, decoded to linear planes, and where it sits on the
@@ -367,7 +185,7 @@ impl Captured {
         let (frame, window) = self.shoot(name)?;
         let want = view_window(&self.hand);
         let (luma, window) = bin(&luminance(&frame.rgb), window, want.step)?;
-        let (w, h) = targets::binned_size(&self.hand, VIEW_STEP);
+        let (w, h) = self.hand.camera.binned_size(VIEW_STEP);
         if (luma.width, luma.height) != (w, h) || (window.x0 - want.x0).abs() > 1e-6 {
             return Err(Error::Invalid(format!(
                 "the camera's photographs bin to {}x{} at sensor offset ({:.1}, {:.1}), rig \
@@ -411,24 +229,12 @@ impl Captured {
 
 impl TargetSource for Captured {
     fn chessboard_view(&mut self, attempt: usize) -> Result<GrayImage> {
-        let exposure = self.view_exposure();
-        self.place(
-            |s| Target::Chessboard(s.operator.pose(attempt)),
-            VIEW_STEP,
-            exposure,
-            attempt as u64,
-        );
+        self.place(Placing::ChessboardView(attempt), VIEW_STEP);
         self.view(&format!("view-{attempt:03}"))
     }
 
     fn table_view(&mut self) -> Result<GrayImage> {
-        let exposure = self.view_exposure();
-        self.place(
-            |s| Target::Chessboard(BoardPose::on_table(&s.operator.chess, &s.truth)),
-            VIEW_STEP,
-            exposure,
-            1 << 20,
-        );
+        self.place(Placing::ChessboardOnTable, VIEW_STEP);
         self.view("table")
     }
 
@@ -441,15 +247,7 @@ impl TargetSource for Captured {
         // Under every LED in turn, not the view LED: white balance and linearity are per
         // light (each LED has its own colour and brightness), so the chart is a capture set
         // shot by the sequencer, like the white sheet.
-        self.place(
-            |_| Target::GrayChart {
-                chart: chart.clone(),
-                world,
-            },
-            CHART_STEP,
-            SIM_FLAT_EXPOSURE,
-            2 << 20,
-        );
+        self.place(Placing::GrayChart { chart, world }, CHART_STEP);
         let set = self.capture_set("graychart", progress)?;
         let info = &set.manifest.image;
         let mut window = info.window;
@@ -486,20 +284,12 @@ impl TargetSource for Captured {
         let mut sum: Option<Frames> = None;
         let n = exposures.max(1);
         for e in 0..n {
-            // Each exposure of each purpose its own noise (a re-shot frame its old noise).
-            let purpose_code = purpose
-                .bytes()
-                .fold(0u64, |h, b| h.wrapping_mul(31) + b as u64);
-            let take = (3 << 20) + (purpose_code << 8) + e as u64;
             self.place(
-                |s| Target::WhiteSheet {
-                    reflectance: SIM_SHEET_REFLECTANCE,
-                    texture: SIM_SHEET_TEXTURE,
-                    seed: s.seed,
+                Placing::WhiteSheet {
+                    purpose,
+                    exposure: e,
                 },
                 SHEET_STEP,
-                SIM_FLAT_EXPOSURE,
-                take,
             );
             let set = self.capture_set(&format!("{purpose}-{e:02}"), progress)?;
             let resolution = if set.manifest.image.encoding == "raw" {

@@ -14,6 +14,16 @@ pub struct PatternSize {
     pub rows: usize,
 }
 
+impl PatternSize {
+    /// The inner-corner pattern of a chessboard target.
+    pub fn of(board: &crate::rig::Board) -> PatternSize {
+        PatternSize {
+            cols: board.cols,
+            rows: board.rows,
+        }
+    }
+}
+
 /// What `calibrateCameraExtended` returns, in plain numbers.
 #[derive(Clone, Debug)]
 pub struct RawCalibration {

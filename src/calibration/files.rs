@@ -11,7 +11,7 @@
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
-use crate::maps::write::read_exr;
+use crate::io::read_exr;
 use crate::plane::{LightFrame, Mask, RgbPlanes, SensorWindow};
 use crate::raw::{
     read_dn_image, read_raw, subtract_dark, Levels, Mosaic, Resolution, SATURATION_MARGIN,
@@ -338,7 +338,7 @@ mod tests {
         let exr = tmp.path().join("L06.exr");
         let mut bright = from_png.rgb.clone();
         bright.g.data[5] = 1.0;
-        crate::maps::write::write_exr(
+        crate::io::write_exr(
             &exr,
             &[("R", &bright.r), ("G", &bright.g), ("B", &bright.b)],
         )

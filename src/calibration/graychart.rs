@@ -5,8 +5,6 @@
 //! the patches that clipped). Patch positions come from a chart description file plus the
 //! chart's rectangle in the image, given by the user.
 
-use std::path::Path;
-
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
@@ -14,106 +12,8 @@ use crate::plane::SensorWindow;
 use crate::raw::Mosaic;
 use crate::rig::Rig;
 
-/// A chart layout (TOML): `rows x cols` equal patches filling the chart's rectangle, their
-/// nominal reflectances row by row, and the central fraction of each patch to sample (edges
-/// blur into the neighbours).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ChartDescription {
-    pub name: String,
-    pub rows: usize,
-    pub cols: usize,
-    pub reflectance: Vec<f64>,
-    #[serde(default = "default_sample_fraction")]
-    pub sample_fraction: f64,
-}
-
-fn default_sample_fraction() -> f64 {
-    0.5
-}
-
-impl ChartDescription {
-    pub fn load(path: &Path) -> Result<ChartDescription> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let chart: ChartDescription = toml::from_str(&text)
-            .map_err(|e| Error::config(path, "chart", e.message().to_string()))?;
-        chart
-            .validate()
-            .map_err(|(field, message)| Error::config(path, field, message))?;
-        Ok(chart)
-    }
-
-    pub fn validate(&self) -> std::result::Result<(), (String, String)> {
-        if self.rows == 0 || self.cols == 0 {
-            return Err(("rows".into(), "a chart needs at least one patch".into()));
-        }
-        if self.reflectance.len() != self.rows * self.cols {
-            return Err((
-                "reflectance".into(),
-                format!(
-                    "{} values for {} x {} patches",
-                    self.reflectance.len(),
-                    self.rows,
-                    self.cols
-                ),
-            ));
-        }
-        if let Some(r) = self
-            .reflectance
-            .iter()
-            .find(|r| !(r.is_finite() && **r > 0.0 && **r <= 1.0))
-        {
-            return Err((
-                "reflectance".into(),
-                format!("each must lie in (0, 1], got {r}"),
-            ));
-        }
-        if !(self.sample_fraction > 0.0 && self.sample_fraction <= 1.0) {
-            return Err(("sample_fraction".into(), "must lie in (0, 1]".into()));
-        }
-        Ok(())
-    }
-
-    /// Twelve Munsell neutral values, N2 to N9.5, in two rows (reflectances from the Munsell
-    /// renotation's luminous reflectance Y).
-    pub fn munsell_12() -> ChartDescription {
-        ChartDescription {
-            name: "munsell-N2-N9.5".into(),
-            rows: 2,
-            cols: 6,
-            reflectance: vec![
-                0.0313, 0.0483, 0.0665, 0.0898, 0.1200, 0.1977, 0.2622, 0.3620, 0.4663, 0.5910,
-                0.7866, 0.8910,
-            ],
-            sample_fraction: 0.5,
-        }
-    }
-}
-
-/// The chart's outer rectangle in image pixels (x0, y0) to (x1, y1), as the user marks it.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ChartRect {
-    pub x0: f64,
-    pub y0: f64,
-    pub x1: f64,
-    pub y1: f64,
-}
-
-impl ChartRect {
-    /// Parses `X0,Y0,X1,Y1`.
-    pub fn parse(text: &str) -> Result<ChartRect> {
-        let v: Vec<f64> = text
-            .split(',')
-            .filter_map(|t| t.trim().parse().ok())
-            .collect();
-        match v.as_slice() {
-            &[x0, y0, x1, y1] if x1 > x0 && y1 > y0 => Ok(ChartRect { x0, y0, x1, y1 }),
-            _ => Err(Error::Invalid(format!(
-                "chart rectangle `{text}`: expected X0,Y0,X1,Y1 in pixels with X1 > X0 and Y1 > Y0"
-            ))),
-        }
-    }
-}
+// moved: issue 15, the lead removes this at merge
+pub use crate::rig::{ChartDescription, ChartRect};
 
 /// One patch under one light: mean linear value per channel (1.0 = white level) of its CFA
 /// samples, and whether any sample clipped.

@@ -76,16 +76,17 @@ pub fn table_from_file(
             ),
         ));
     }
-    let corners = super::cv::find_corners(&image, board.pattern(), None)?.ok_or_else(|| {
-        Error::image(
-            path,
-            format!(
+    let corners = super::cv::find_corners(&image, super::cv::PatternSize::of(board), None)?
+        .ok_or_else(|| {
+            Error::image(
+                path,
+                format!(
                 "the {}x{} board was not found: the whole board must be in the frame, flat and \
                  evenly lit (check --board, inner corners COLSxROWS)",
                 board.cols, board.rows
             ),
-        )
-    })?;
+            )
+        })?;
     let pose = table::pose_from_corners(&corners, board, intr)?;
     let check = pixel_to_world_check(&corners, board, camera, &pose);
     Ok(TableStep {
@@ -267,7 +268,7 @@ pub fn write_sheet_maps(dir: &Path, sheet: &[SheetLight]) -> Result<()> {
     crate::fsutil::create_dir_all(dir)?;
     for (k, light) in sheet.iter().enumerate() {
         let [r, g, b] = [light.map(0), light.map(1), light.map(2)];
-        crate::maps::write::write_exr(
+        crate::io::write_exr(
             &dir.join(format!("L{k:02}_intensity.exr")),
             &[("R", &r), ("G", &g), ("B", &b)],
         )?;
@@ -279,7 +280,7 @@ fn read_sheet_maps(dir: &Path, lights: usize) -> Result<Vec<[Plane; 3]>> {
     (0..lights)
         .map(|k| {
             let path = dir.join(format!("L{k:02}_intensity.exr"));
-            let mut planes = crate::maps::write::read_exr(&path, &["R", "G", "B"])?.into_iter();
+            let mut planes = crate::io::read_exr(&path, &["R", "G", "B"])?.into_iter();
             let mut next = || planes.next().expect("three channels read");
             Ok([next(), next(), next()])
         })

@@ -39,7 +39,7 @@ pub fn table_pose(image: &GrayImage, board: &Board, intrinsics: &Intrinsics) -> 
             image.width, image.height, intrinsics.width, intrinsics.height
         )));
     }
-    let corners = cv::find_corners(image, board.pattern(), None)?.ok_or_else(|| {
+    let corners = cv::find_corners(image, cv::PatternSize::of(board), None)?.ok_or_else(|| {
         Error::Invalid(
             "the board lying on the table was not found: the whole board must be in the frame, lit evenly"
                 .into(),

@@ -1,7 +1,7 @@
 //! The white sheet: a near-perfect diffuse sheet flat on the table, photographed under each
 //! LED. Block means of its images (which average the paper's fibre texture away) measure each
 //! light's intensity across the field; they are the data the LED positions are fitted to
-//! ([`super::lights`]) and, stored as maps, what the bundle keeps of the sheet. Re-solving the
+//! (the `lights` step) and, stored as maps, what the bundle keeps of the sheet. Re-solving the
 //! sheet with the final calibration is the wizard's flatness check.
 
 use nalgebra::Vector3;

@@ -30,7 +30,7 @@ pub struct Manifest {
     /// The calibration bundle the rig came from, when there was one: its id, checksum and
     /// where it was. A solve checks the bundle it uses against this.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub calibration: Option<crate::calibration::bundle::CalibrationRef>,
+    pub calibration: Option<crate::rig::CalibrationRef>,
     pub image: ImageInfo,
     pub camera: CameraSettings,
     /// Present for sets rendered by `psscan synth`: where the ground truth lies.

@@ -1,11 +1,11 @@
 //! Capture: the LED controller (serial protocol to the Arduino firmware, a mock, port
-//! discovery, keepalive), cameras (libgphoto2, external command, simulated), the firmware
-//! emulator and its pin log, the sequencer that shoots a set frame by frame, and capture sets
-//! on disk (manifest, atomic frame writes, checked reading, resume).
+//! discovery, keepalive), cameras (libgphoto2, external command), the sequencer that shoots a
+//! set frame by frame, and capture sets on disk (manifest, atomic frame writes, checked
+//! reading, resume). The simulated camera and the firmware emulator are the `sim` module's.
 
 pub mod camera;
 pub mod diligent;
-pub mod emulator;
+pub mod exposure;
 pub mod frame_check;
 pub mod interrupt;
 pub mod lights;

@@ -135,10 +135,7 @@ impl CaptureSetWriter {
     }
 
     /// Records the calibration bundle the set's rig came from.
-    pub fn set_calibration(
-        &mut self,
-        calibration: crate::calibration::bundle::CalibrationRef,
-    ) -> Result<()> {
+    pub fn set_calibration(&mut self, calibration: crate::rig::CalibrationRef) -> Result<()> {
         self.manifest.calibration = Some(calibration);
         self.write_manifest()
     }

@@ -7,8 +7,9 @@ use std::path::Path;
 use std::time::Duration;
 
 use super::camera::{Camera, Shot};
+use super::exposure::{settle_fire_confirm, switch_and_confirm};
 use super::interrupt::Interrupt;
-use super::lights::{Keepalive, LightState, SharedLights};
+use super::lights::{Keepalive, SharedLights};
 use crate::error::{Error, Result};
 
 /// Takes one photograph into `dest` with LED `led` on (`None`: all off). The LEDs are off
@@ -31,10 +32,7 @@ pub fn shoot_one(
             let leds = lights.off_and_report();
             Err(match e {
                 Error::Interrupted(m) => Error::Interrupted(format!("{m}; {leds}")),
-                Error::Device { device, message } => Error::Device {
-                    device,
-                    message: format!("{message}; {leds}"),
-                },
+                e @ (Error::Device { .. } | Error::Link { .. }) => e.with_aftermath(leds),
                 other => other,
             })
         }
@@ -49,80 +47,24 @@ fn lit_shot(
     settle: Duration,
     interrupt: &Interrupt,
 ) -> Result<Shot> {
-    let stop = || Error::Interrupted("Ctrl-C".into());
     if interrupt.is_set() {
-        return Err(stop());
+        return Err(Error::Interrupted("Ctrl-C".into()));
     }
-    let timeout_ms = {
-        let mut l = lights.lock();
-        match led {
-            Some(k) => l.on(k)?,
-            None => l.off()?,
-        }
-        let state = l.state()?;
-        confirm(&l.name(), led, &state, "before the shot")?;
-        state.timeout_ms
-    };
+    let timeout_ms = switch_and_confirm(lights, led)?.timeout_ms;
     let keepalive = Keepalive::start(
         lights.clone(),
         Duration::from_millis(timeout_ms as u64 / 3),
         interrupt.clone(),
     );
-    {
-        let _lease = keepalive.lease(settle + Duration::from_secs(1));
-        if !interrupt.sleep(settle) {
-            return Err(stop());
-        }
-    }
-    let shot = {
-        let _lease = keepalive.lease(camera.max_shot_time());
-        camera.capture(dest, interrupt)?
-    };
-    // Ctrl-C during the shot: the keepalive may have switched the LED off mid-exposure.
-    if interrupt.is_set() {
-        return Err(stop());
-    }
-    drop(keepalive);
-    let mut l = lights.lock();
-    let state = l.state()?;
-    confirm(&l.name(), led, &state, "after the shot")?;
-    Ok(shot)
-}
-
-/// The controller must report `led` (and, after a lit shot, `tripped=0`: the LED stayed on).
-fn confirm(device: &str, led: Option<usize>, state: &LightState, when: &str) -> Result<()> {
-    if state.on == led && !(led.is_some() && state.tripped) {
-        return Ok(());
-    }
-    let say = |on: Option<usize>| match on {
-        Some(k) => format!("LED {k} on"),
-        None => "all LEDs off".to_string(),
-    };
-    let why = if state.tripped {
-        format!(
-            " (tripped=1: the firmware switched the LED off by itself after {} ms without a \
-             word from the host)",
-            state.timeout_ms
-        )
-    } else {
-        String::new()
-    };
-    Err(Error::device(
-        device,
-        format!(
-            "{when}: reports {}, expected {}{why}",
-            say(state.on),
-            say(led)
-        ),
-    ))
+    settle_fire_confirm(lights, &keepalive, camera, led, dest, settle, interrupt)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::capture::camera::{Placement, Stage, Target, TargetCamera};
     use crate::capture::lights::{MockFault, MockLights};
     use crate::rig::Rig;
+    use crate::sim::{Placement, Stage, Target, TargetCamera};
     use crate::synth::targets::Chessboard;
 
     fn camera(probe: crate::capture::lights::MockProbe) -> (TargetCamera, Stage) {
@@ -133,7 +75,7 @@ mod tests {
             ..Placement::default()
         });
         let chess = Chessboard {
-            board: crate::calibration::camera::Board::parse("9x6", 15.0).unwrap(),
+            board: crate::rig::Board::parse("9x6", 15.0).unwrap(),
             border_squares: 1.0,
         };
         let cam = TargetCamera::new(Rig::default_rig(), chess, stage.clone(), Box::new(probe), 1);

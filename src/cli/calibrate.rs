@@ -6,14 +6,17 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::{Args, Subcommand, ValueEnum};
-use psscan::calibration::camera::{self, Board, CameraOptions};
-use psscan::calibration::capture::{self, Captured, Simulated};
-use psscan::calibration::graychart::ChartDescription;
+use psscan::calibration::camera::{self, CameraOptions};
+use psscan::calibration::capture::Captured;
 use psscan::calibration::wizard::{ChartVerdict, Step, TargetSource, Wizard, VIEWS_NEEDED};
-use psscan::capture::camera::{Camera, LitSource};
-use psscan::capture::emulator::PinLog;
+use psscan::capture::camera::Camera;
+use psscan::rig::Board;
+use psscan::rig::ChartDescription;
+use psscan::sim::operator::{simulated_camera, Simulated};
 
-use super::calibrate_steps::{self as steps, BundleArgs, GraychartArgs, TableArgs, WhitesheetArgs};
+use super::calibrate_steps::{
+    self as steps, BoardArgs, BundleArgs, GraychartArgs, TableArgs, WhitesheetArgs,
+};
 use super::capture::{interrupt_on_ctrl_c, open_camera, Controller, PortArgs};
 use super::progress::Bars;
 use super::{load_rig, print_json};
@@ -38,16 +41,6 @@ enum CalibrateStep {
     Whitesheet(WhitesheetArgs),
     /// Assemble the steps' results into a calibration bundle that captures and solves cite.
     Bundle(BundleArgs),
-}
-
-#[derive(Args)]
-pub(super) struct BoardArgs {
-    /// Inner corners of the chessboard, COLSxROWS.
-    #[arg(long, default_value = "9x6")]
-    pub(super) board: String,
-    /// Side of one square in millimetres.
-    #[arg(long, default_value_t = 25.0)]
-    pub(super) square_mm: f64,
 }
 
 #[derive(Args)]
@@ -159,7 +152,7 @@ pub fn calibrate(args: &CalibrateArgs, json: bool, bars: &Bars) -> anyhow::Resul
 }
 
 fn camera_step(args: &CameraArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
-    let board = Board::parse(&args.board.board, args.board.square_mm)?;
+    let board = args.board.parse()?;
     let files = camera::image_files(&args.images)?;
     let (views, size) = camera::detect_files(&files, &board, args.subpix_window, bars)?;
     let options = CameraOptions {
@@ -238,16 +231,15 @@ fn open_source(
     let interrupt = interrupt_on_ctrl_c()?;
     let controller = Controller::open(&args.port, args.pin_log.as_deref())?;
     let camera = args.port.camera_or_default(&args.camera);
-    let (camera, sim): (Box<dyn Camera>, _) = if camera == "sim" {
-        let lit: Box<dyn LitSource> = match (&controller.emulated, &args.pin_log) {
-            (Some(emulated), _) => Box::new(emulated.pin_log()),
-            (None, Some(path)) => Box::new(PinLog::new(path)),
-            (None, None) => Box::new(psscan::capture::camera::sim::ControllerState(
-                controller.lights.clone(),
-            )),
-        };
-        let (camera, scene) = capture::simulated_camera(hand, board, args.seed, lit);
-        (Box::new(camera), Some(scene))
+    type Operator = Option<Box<dyn psscan::calibration::capture::Operator>>;
+    let (camera, operator): (Box<dyn Camera>, Operator) = if camera == "sim" {
+        let lit = psscan::sim::lit_source(
+            controller.emulated.as_ref(),
+            args.pin_log.as_deref(),
+            &controller.lights,
+        );
+        let (camera, scene) = simulated_camera(hand, board, args.seed, lit);
+        (Box::new(camera), Some(Box::new(scene)))
     } else {
         let timeout = Duration::from_secs_f64(args.shot_timeout_s.max(0.1));
         (open_camera(&camera, None, timeout)?, None)
@@ -257,7 +249,7 @@ fn open_source(
         hand,
         controller.lights.clone(),
         camera,
-        sim,
+        operator,
         Duration::from_millis(args.settle_ms),
         interrupt,
     )?;

@@ -12,15 +12,34 @@
 use std::path::{Path, PathBuf};
 
 use clap::Args;
-use psscan::calibration::camera::{Board, CameraCalibration};
+use psscan::calibration::camera::CameraCalibration;
 use psscan::calibration::files::{self, LINEAR_EXTENSIONS, RAW_EXTENSIONS};
-use psscan::calibration::graychart::{ChartDescription, ChartRect, ChartReport};
+use psscan::calibration::graychart::ChartReport;
 use psscan::calibration::steps::{self, BundleInputs, TableStep, WhiteSheetStep};
 use psscan::fsutil::{write_atomic, StagedDir};
+use psscan::rig::Board;
+use psscan::rig::{ChartDescription, ChartRect};
 
-use super::calibrate::BoardArgs;
 use super::progress::Bars;
 use super::{load_rig, print_json};
+
+/// The chessboard target's flags, shared by the wizard's camera step and the table step.
+#[derive(Args)]
+pub(super) struct BoardArgs {
+    /// Inner corners of the chessboard, COLSxROWS.
+    #[arg(long, default_value = "9x6")]
+    pub(super) board: String,
+    /// Side of one square in millimetres.
+    #[arg(long, default_value_t = 25.0)]
+    pub(super) square_mm: f64,
+}
+
+impl BoardArgs {
+    /// The board the flags describe.
+    pub(super) fn parse(&self) -> psscan::Result<Board> {
+        Board::parse(&self.board, self.square_mm)
+    }
+}
 
 #[derive(Args)]
 pub struct TableArgs {
@@ -163,7 +182,7 @@ fn write_toml<T: serde::Serialize>(path: &Path, value: &T) -> anyhow::Result<()>
 }
 
 pub fn table(args: &TableArgs, json: bool) -> anyhow::Result<()> {
-    let board = Board::parse(&args.board.board, args.board.square_mm)?;
+    let board = args.board.parse()?;
     let camera: CameraCalibration = steps::load_toml(&args.camera, "camera")?;
     let result = steps::table_from_file(&args.image, &board, &camera)?;
     if let Some(out) = &args.out {

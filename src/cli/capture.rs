@@ -5,16 +5,15 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use clap::{Args, Subcommand};
-use psscan::capture::camera::sim::ControllerState;
-use psscan::capture::camera::{Camera, CommandCamera, LitSource};
-use psscan::capture::emulator::PinLog;
+use psscan::capture::camera::{self, Camera, CameraSpec};
 use psscan::capture::lights::{
-    list_ports, resolve_port, SerialLights, SerialOptions, SharedLights,
+    describe_on, list_ports, resolve_port, test_leds, LedCheck, LedTest, SerialLights,
+    SerialOptions, SharedLights,
 };
 use psscan::capture::{
     run_capture, CaptureOptions, CaptureReport, CaptureSet, FrameStatus, Interrupt,
 };
-use psscan::emulated::{capture_synthetic, EmulatedController, FirmwareSimDemoSummary};
+use psscan::sim::emulated::{capture_synthetic, EmulatedController, FirmwareSimDemoSummary};
 use serde::Serialize;
 
 use super::progress::Bars;
@@ -79,6 +78,28 @@ impl Drop for ScratchFile {
     }
 }
 
+/// A port that could not be opened because it is not there: where to find the ports.
+fn port_hint(e: psscan::Error) -> anyhow::Error {
+    use psscan::error::{LinkError, PortProblem};
+    let missing = matches!(
+        &e,
+        psscan::Error::Link {
+            source: LinkError::Unopened {
+                problem: PortProblem::NoDevice | PortProblem::NotFound,
+                ..
+            },
+            ..
+        }
+    );
+    let text = format!("{e}; `psscan lights ports` lists the ports");
+    let e = anyhow::Error::from(e);
+    if missing {
+        e.context(text)
+    } else {
+        e
+    }
+}
+
 impl Controller {
     /// Opens the controller. With `--firmware-sim` the emulator's pin log goes to `pin_log`
     /// when given, else to a scratch folder.
@@ -100,7 +121,7 @@ impl Controller {
             });
         }
         let port = resolve_port(&args.port)?;
-        let serial = SerialLights::open(&port, args.serial_options())?;
+        let serial = SerialLights::open(&port, args.serial_options()).map_err(port_hint)?;
         Ok(Controller {
             lights: SharedLights::new(Box::new(serial)),
             emulated: None,
@@ -192,11 +213,11 @@ pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()
     let shot_timeout = Duration::from_secs_f64(args.shot_timeout_s.max(0.1));
     let camera = args.port.camera_or_default(&args.camera);
     let report = if camera == "sim" {
-        let source: Box<dyn LitSource> = match (&controller.emulated, &args.pin_log) {
-            (Some(emulated), _) => Box::new(emulated.pin_log()),
-            (None, Some(path)) => Box::new(PinLog::new(path)),
-            (None, None) => Box::new(ControllerState(controller.lights.clone())),
-        };
+        let source = psscan::sim::lit_source(
+            controller.emulated.as_ref(),
+            args.pin_log.as_deref(),
+            &controller.lights,
+        );
         capture_synthetic(
             &args.out,
             &rig,
@@ -227,43 +248,24 @@ pub fn capture(args: &CaptureArgs, json: bool, bars: &Bars) -> anyhow::Result<()
     Ok(())
 }
 
+/// Opens the camera `--camera` names (not `sim`), turning the library's errors into the
+/// flag's hints.
 pub(super) fn open_camera(
     spec: &str,
     frame_ext: Option<&str>,
     shot_timeout: Duration,
 ) -> anyhow::Result<Box<dyn Camera>> {
-    if let Some(template) = spec.strip_prefix("cmd:") {
-        return Ok(Box::new(CommandCamera::new(
-            template,
-            frame_ext,
-            shot_timeout,
-        )?));
+    let spec = CameraSpec::parse(spec).map_err(|e| anyhow::anyhow!("--{e}"))?;
+    match camera::open_camera(&spec, frame_ext, shot_timeout) {
+        Err(psscan::Error::Unsupported(m)) if spec == CameraSpec::Gphoto2 => {
+            Err(psscan::Error::Unsupported(format!(
+                "--camera gphoto2: {m}, or use --camera 'cmd:gphoto2 \
+                 --capture-image-and-download --filename {{out}}'"
+            ))
+            .into())
+        }
+        other => Ok(other?),
     }
-    match spec {
-        "gphoto2" => open_gphoto2(shot_timeout),
-        other => Err(psscan::Error::Invalid(format!(
-            "--camera {other:?}: expected gphoto2, sim, or cmd:TEMPLATE"
-        ))
-        .into()),
-    }
-}
-
-#[cfg(feature = "gphoto2")]
-fn open_gphoto2(shot_timeout: Duration) -> anyhow::Result<Box<dyn Camera>> {
-    Ok(Box::new(
-        psscan::capture::camera::gphoto::Gphoto2Camera::open(shot_timeout)?,
-    ))
-}
-
-#[cfg(not(feature = "gphoto2"))]
-fn open_gphoto2(_: Duration) -> anyhow::Result<Box<dyn Camera>> {
-    Err(psscan::Error::Unsupported(
-        "--camera gphoto2: this psscan was built without libgphoto2; rebuild with `cargo build \
-         --release --features gphoto2` (needs libgphoto2-dev), or use \
-         --camera 'cmd:gphoto2 --capture-image-and-download --filename {out}'"
-            .into(),
-    )
-    .into())
 }
 
 fn print_capture(r: &CaptureReport) {
@@ -329,13 +331,6 @@ enum LightsCommand {
     },
     /// Switch all LEDs off.
     Off,
-}
-
-#[derive(Serialize)]
-struct LedCheck {
-    led: usize,
-    ok: bool,
-    state: String,
 }
 
 pub fn lights(args: &LightsArgs, json: bool) -> anyhow::Result<()> {
@@ -407,36 +402,21 @@ pub fn lights(args: &LightsArgs, json: bool) -> anyhow::Result<()> {
             }
         }
         LightsCommand::Test { dwell_ms } => {
-            let leds = lights.lock().identify()?.leds;
-            let mut checks = Vec::new();
-            for led in 0..leds {
-                let state = {
-                    let mut l = lights.lock();
-                    l.on(led)?;
-                    l.state()?
-                };
-                let ok = state.on == Some(led) && !state.tripped;
+            let mut show = |c: &LedCheck| {
                 if !json {
-                    println!(
-                        "LED {led}: {}  ({})",
-                        if ok { "ok" } else { "WRONG" },
-                        describe_on(state.on)
-                    );
+                    let verdict = if c.ok { "ok" } else { "WRONG" };
+                    println!("LED {}: {verdict}  ({})", c.led, c.state);
                 }
-                checks.push(LedCheck {
-                    led,
-                    ok,
-                    state: describe_on(state.on),
-                });
-                if !interrupt.sleep(Duration::from_millis(*dwell_ms)) {
-                    break;
-                }
-            }
-            lights.lock().off()?;
+            };
+            let dwell = Duration::from_millis(*dwell_ms);
+            let LedTest {
+                checks,
+                interrupted,
+            } = test_leds(lights, dwell, &interrupt, &mut show)?;
             if json {
                 print_json(&checks);
             }
-            if interrupt.is_set() {
+            if interrupted {
                 return Err(psscan::Error::Interrupted(
                     "LED test stopped; all LEDs are off".into(),
                 )
@@ -494,13 +474,6 @@ fn lit_list(lit: &[usize]) -> String {
     }
 }
 
-fn describe_on(on: Option<usize>) -> String {
-    match on {
-        Some(k) => format!("LED {k} on"),
-        None => "all LEDs off".into(),
-    }
-}
-
 /// `psscan demo --firmware-sim`.
 pub fn demo_firmware_sim(
     out: &Path,
@@ -510,7 +483,7 @@ pub fn demo_firmware_sim(
     bars: &Bars,
 ) -> anyhow::Result<()> {
     let interrupt = interrupt_on_ctrl_c()?;
-    let summary = psscan::emulated::run_firmware_sim_demo(
+    let summary = psscan::sim::emulated::run_firmware_sim_demo(
         out,
         &scene.spec(),
         job,

@@ -3,11 +3,13 @@
 //!
 //! Exit codes: 0 success, 1 failure (the message says what and where), 2 usage error.
 
+mod bench;
 mod calibrate;
 mod calibrate_steps;
 mod capture;
 mod derive;
 mod eval;
+mod outcome;
 mod progress;
 mod report;
 mod signals;
@@ -29,6 +31,9 @@ use psscan::solve::{
 };
 use psscan::synth::{FrameEncoding, Sheen, SynthSpec};
 
+use outcome::{
+    exit_code, is_closed_pipe_message, panic_text, quiet_closed_pipe_panics, usage_error,
+};
 use progress::Bars;
 
 #[derive(Parser)]
@@ -67,7 +72,7 @@ enum Command {
     Calibrate(Box<calibrate::CalibrateArgs>),
     /// Benchmark every solver variant on standard synthetic scenes: run time against error,
     /// beside the memory-read floor and a NumPy peer.
-    Bench(BenchArgs),
+    Bench(bench::BenchArgs),
     /// Rebuild a solve folder's report.html (one self-contained page), or render its relight
     /// on the CPU.
     Report(report::ReportArgs),
@@ -77,28 +82,6 @@ enum Command {
     /// Measure the estimators against ground truth on DiLiGenT-layout sets (real captures),
     /// over deterministic light subsets, beside the trimmed and published anchors.
     Eval(eval::EvalArgs),
-}
-
-#[derive(Args)]
-struct BenchArgs {
-    /// Folder for bench.md, bench.json and bench.svg.
-    #[arg(long, default_value = "docs/bench")]
-    out: PathBuf,
-    /// Scene sizes in megapixels, comma-separated (each more than 0, at most 64).
-    #[arg(long, value_delimiter = ',', default_values_t = vec![1.0, 16.0],
-          value_parser = values::megapixels, allow_negative_numbers = true)]
-    sizes: Vec<f64>,
-    /// Timed runs per variant (median reported); 1 or more.
-    #[arg(long, default_value_t = 3, value_parser = values::positive_count)]
-    repeats: usize,
-    /// Do not run the NumPy peer even when python3 and numpy are present.
-    #[arg(long)]
-    no_numpy: bool,
-    /// Only what the speed targets need (a fraction of the full run): the
-    /// Lambertian scene, the memory-read floor, the `fast f32 tiled` variants (fresh and
-    /// reused outputs, normal-only), the NumPy peer and peak memory.
-    #[arg(long)]
-    speed_only: bool,
 }
 
 #[derive(Args)]
@@ -433,28 +416,6 @@ pub fn run() -> i32 {
     }
 }
 
-/// Reports a command's outcome (the error on stderr, and as JSON with `--json`); its exit code.
-fn exit_code(cli: &Cli, outcome: anyhow::Result<()>) -> i32 {
-    match outcome {
-        Ok(()) => 0,
-        Err(err) => {
-            let message = error_text(&err);
-            // 130 / 143: stopped by SIGINT / SIGTERM, as shells report them.
-            let code = match err.downcast_ref::<psscan::Error>() {
-                Some(psscan::Error::Interrupted(_)) => signals::interrupted_exit_code(),
-                _ => 1,
-            };
-            eprintln!("psscan: error: {message}");
-            // A script reading --json gets the failure on stdout too, unless the command
-            // already printed its own object (a batch's summary names each failed set).
-            if cli.json && !JSON_PRINTED.load(Ordering::Relaxed) {
-                print_json(&serde_json::json!({ "error": message, "exit_code": code }));
-            }
-            code
-        }
-    }
-}
-
 /// Runs the chosen command.
 fn dispatch(cli: &Cli, bars: &Bars) -> anyhow::Result<()> {
     match &cli.command {
@@ -464,120 +425,15 @@ fn dispatch(cli: &Cli, bars: &Bars) -> anyhow::Result<()> {
         Command::Capture(args) => capture::capture(args, cli.json, bars),
         Command::Lights(args) => capture::lights(args, cli.json),
         Command::Calibrate(args) => calibrate::calibrate(args, cli.json, bars),
-        Command::Bench(args) => bench(args, cli.json, bars),
+        Command::Bench(args) => bench::bench(args, cli.json, bars),
         Command::Report(args) => report::report(args, cli.json),
         Command::Derive(args) => derive::derive(args, cli.json, bars),
         Command::Eval(args) => eval::eval(args, cli.json, bars),
     }
 }
 
-/// Rust ignores SIGPIPE, so a print to a closed pipe (`psscan lights ports | head -0`) fails
-/// with EPIPE and `println!` panics. The process must not die by the signal instead: a command
-/// holding the LEDs or a staging folder has to unwind so its guards switch the LEDs off and
-/// remove what it staged. So the panic's message is silenced here, the command unwinds, and
-/// `run` turns it into the shell's exit code for SIGPIPE (141).
-fn quiet_closed_pipe_panics() {
-    let previous = std::panic::take_hook();
-    std::panic::set_hook(Box::new(move |info| {
-        if !is_closed_pipe_message(panic_text(info.payload())) {
-            previous(info);
-        }
-    }));
-}
-
-/// The text of a panic payload (`panic!` with a literal or a formatted message).
-fn panic_text(payload: &(dyn std::any::Any + Send)) -> &str {
-    payload
-        .downcast_ref::<String>()
-        .map(String::as_str)
-        .or_else(|| payload.downcast_ref::<&str>().copied())
-        .unwrap_or("")
-}
-
-/// Whether a panic is std's "failed printing to stdout/stderr: Broken pipe".
-fn is_closed_pipe_message(text: &str) -> bool {
-    text.starts_with("failed printing to std") && text.contains("Broken pipe")
-}
-
-/// A usage error (exit 2, clap's message and usage line on stderr; with `--json` also as a
-/// JSON object on stdout). `--help` and `--version` print and exit 0 as clap does.
-fn usage_error(err: clap::Error) -> i32 {
-    use clap::error::ErrorKind;
-    if matches!(
-        err.kind(),
-        ErrorKind::DisplayHelp | ErrorKind::DisplayVersion
-    ) {
-        err.exit();
-    }
-    let code = err.exit_code();
-    let rendered = err.render().to_string();
-    // clap leaves the usage line out of some errors (a value its parser rejected): add it.
-    let text = if rendered.contains("Usage:") {
-        rendered
-    } else {
-        let hint = "For more information, try '--help'.";
-        format!(
-            "{}\n\n{}\n\n{hint}\n",
-            rendered.replace(hint, "").trim_end(),
-            usage_of_invoked_command()
-        )
-    };
-    if json_requested() {
-        let message = text
-            .lines()
-            .next()
-            .unwrap_or_default()
-            .trim_start_matches("error: ");
-        print_json(&serde_json::json!({
-            "error": message,
-            "exit_code": code,
-            "usage": text.trim_end(),
-        }));
-    }
-    eprint!("{text}");
-    code
-}
-
-/// The usage line of the (sub)command the arguments name, e.g. `Usage: psscan solve ...`.
-fn usage_of_invoked_command() -> String {
-    use clap::CommandFactory;
-    let mut command = Cli::command();
-    command.build();
-    let mut current = &command;
-    for arg in std::env::args().skip(1) {
-        if let Some(sub) = current.find_subcommand(&arg) {
-            current = sub;
-        }
-    }
-    current.clone().render_usage().to_string()
-}
-
-/// `--json` among the arguments (before any `--`), for errors found before parsing completes.
-fn json_requested() -> bool {
-    std::env::args_os()
-        .skip(1)
-        .take_while(|a| a != "--")
-        .any(|a| a == "--json")
-}
-
-/// The error and its causes, each cause only where the text so far does not already say it
-/// (an I/O error's message is both in psscan's own text and its source).
-fn error_text(err: &anyhow::Error) -> String {
-    let mut text = String::new();
-    for cause in err.chain() {
-        let part = cause.to_string();
-        if text.is_empty() {
-            text = part;
-        } else if !text.contains(&part) {
-            text.push_str(": ");
-            text.push_str(&part);
-        }
-    }
-    text
-}
-
 /// Set once a command has printed its JSON object, so a failure after it adds no second one.
-static JSON_PRINTED: AtomicBool = AtomicBool::new(false);
+pub(super) static JSON_PRINTED: AtomicBool = AtomicBool::new(false);
 
 impl Command {
     /// The command, for messages about the run ("stopped `psscan solve` ...").
@@ -604,7 +460,7 @@ fn load_rig(path: &Option<PathBuf>) -> psscan::Result<Rig> {
     }
 }
 
-fn print_json<T: serde::Serialize>(value: &T) {
+pub(super) fn print_json<T: serde::Serialize>(value: &T) {
     JSON_PRINTED.store(true, Ordering::Relaxed);
     println!(
         "{}",
@@ -890,50 +746,4 @@ fn print_warnings(warnings: &[String]) {
     for w in warnings {
         println!("  WARNING: {w}");
     }
-}
-
-fn bench(args: &BenchArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/numpy_ps.py");
-    let numpy = !args.no_numpy && psscan::bench::numpy_available() && script.exists();
-    if !args.no_numpy && !numpy {
-        eprintln!(
-            "psscan bench: python3 with numpy (and {}) not found; the NumPy peer is skipped \
-             (pip install numpy)",
-            script.display()
-        );
-    }
-    // The output folder is checked before the long run, and written whole at the end: it
-    // is the bench's own (replaced without --force), never a folder of other files.
-    psscan::fsutil::check_replaceable(&args.out, true, &[])?;
-    let options = psscan::bench::BenchOptions {
-        sizes_mp: args.sizes.clone(),
-        repeats: args.repeats,
-        numpy,
-        numpy_script: script,
-        scratch: std::env::temp_dir().join(format!("psscan-bench-{}", std::process::id())),
-        speed_only: args.speed_only,
-    };
-    psscan::fsutil::register_scratch(&options.scratch);
-    let result = psscan::bench::run(&options, bars);
-    let _ = std::fs::remove_dir_all(&options.scratch);
-    psscan::fsutil::unregister_scratch(&options.scratch);
-    let result = result?;
-    let stage = psscan::fsutil::StagedDir::create(&args.out, true, &[])?;
-    psscan::bench::report::write(&result, stage.path())?;
-    stage.commit(true, &[])?;
-    if json {
-        print_json(&serde_json::json!({
-            "result": result,
-            "targets": psscan::bench::report::targets(&result),
-            "estimators": psscan::bench::report::estimator_figures(&result),
-            "out": args.out,
-        }));
-    } else {
-        print!("{}", psscan::bench::report::markdown(&result));
-        println!(
-            "\nwrote {}/bench.md, bench.json, bench.svg",
-            args.out.display()
-        );
-    }
-    Ok(())
 }

@@ -20,9 +20,9 @@ use crate::plane::Plane;
 use crate::solve::SolveResult;
 use crate::timing::Busy;
 
+pub use crate::io::PngCompression;
 pub use encode::NormalConvention;
 pub use report::Report;
-pub use write::PngCompression;
 
 /// Which maps to write and how.
 #[derive(Clone, Debug, Serialize)]
@@ -171,14 +171,14 @@ fn encode_map(
 ) -> Result<Vec<u8>> {
     let (w, h) = (result.width, result.height);
     match file {
-        MapFile::NormalPng => write::encode_png16(
+        MapFile::NormalPng => crate::io::encode_png16(
             path,
             w,
             h,
             encode::normal_rgb16(result, options.normal_convention),
             options.png_compression,
         ),
-        MapFile::AlbedoPng => write::encode_png16(
+        MapFile::AlbedoPng => crate::io::encode_png16(
             path,
             w,
             h,
@@ -187,11 +187,11 @@ fn encode_map(
         ),
         MapFile::NormalExr => {
             let [nx, ny, nz] = encode::normal_planes(result, options.normal_convention);
-            write::encode_exr(path, &[("R", &nx), ("G", &ny), ("B", &nz)])
+            crate::io::encode_exr(path, &[("R", &nx), ("G", &ny), ("B", &nz)])
         }
         MapFile::AlbedoExr => {
             let [r, g, b] = &result.albedo;
-            write::encode_exr(path, &[("R", r), ("G", g), ("B", b)])
+            crate::io::encode_exr(path, &[("R", r), ("G", g), ("B", b)])
         }
         MapFile::Confidence => {
             let lights =
@@ -202,7 +202,7 @@ fn encode_map(
                 result.status.iter().map(|&s| s as u8 as f32).collect(),
             )?;
             let fit = Plane::from_vec(w, h, result.fit.iter().map(|&f| f as u8 as f32).collect())?;
-            write::encode_exr(
+            crate::io::encode_exr(
                 path,
                 &[
                     ("residual", &result.residual),

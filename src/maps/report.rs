@@ -75,11 +75,11 @@ pub struct Report {
     pub normal_truth: Option<crate::eval::MaskedNormalComparison>,
     /// The calibration bundle whose rig (and gain grids) the solve used.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub calibration: Option<crate::calibration::bundle::CalibrationRef>,
+    pub calibration: Option<crate::rig::CalibrationRef>,
     /// The bundle the capture set cites, when the solve did not use it (`--no-calibration`,
     /// `--rig`, or `--allow-calibration-mismatch` with another bundle).
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub calibration_cited_by_set: Option<crate::calibration::bundle::CalibrationRef>,
+    pub calibration_cited_by_set: Option<crate::rig::CalibrationRef>,
     /// Orientation of the normal maps written.
     pub normal_convention: super::NormalConvention,
     /// The lights in frame order, for the report page's view of the rig.

@@ -18,6 +18,14 @@ impl Camera {
         tilt.matrix() * nadir
     }
 
+    /// The sensor's size in whole pixels of a binning `step` (partial edge bins dropped).
+    pub fn binned_size(&self, step: f64) -> (usize, usize) {
+        (
+            (self.width as f64 / step).floor() as usize,
+            (self.height as f64 / step).floor() as usize,
+        )
+    }
+
     pub fn centre(&self) -> Vector3<f64> {
         Vector3::from(self.position_m)
     }

@@ -2,7 +2,9 @@
 //! camera is and how it images, what the sensor's levels and noise are. Read from and written
 //! to `rig.toml`; validated with errors that name the offending field. No device I/O here.
 
+mod citation;
 mod geometry;
+mod targets;
 
 use std::path::Path;
 
@@ -10,7 +12,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 
+pub use citation::CalibrationRef;
 pub use geometry::{LightSample, PlaneMapper};
+pub use targets::{Board, ChartDescription, ChartRect};
 
 /// The rig that ships with psscan (`calibration/default/rig.toml`), embedded in the binary so
 /// `psscan demo` runs anywhere.

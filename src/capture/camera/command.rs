@@ -8,8 +8,8 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+use super::unix_now_us;
 use super::{extension_of, raw_image_info, Camera, Shot};
-use crate::capture::emulator::unix_now_us;
 use crate::capture::interrupt::Interrupt;
 use crate::capture::manifest::{CameraSettings, ImageInfo};
 use crate::error::{Error, Result};

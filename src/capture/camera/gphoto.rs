@@ -6,8 +6,8 @@
 use std::path::Path;
 use std::time::Duration;
 
+use super::unix_now_us;
 use super::{extension_of, raw_image_info, Camera, Shot};
-use crate::capture::emulator::unix_now_us;
 use crate::capture::interrupt::Interrupt;
 use crate::capture::manifest::{CameraSettings, ImageInfo};
 use crate::error::{Error, Result};

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use super::protocol::{FirmwareInfo, LightState, FIRMWARE_NAME, PROTOCOL_VERSION};
 use super::LightController;
-use crate::error::{Error, Result};
+use crate::error::{Error, LinkError, Result};
 
 /// A fault the mock plays when it sees a request (by its protocol line, e.g. `ON 3`).
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -86,10 +86,16 @@ impl MockLights {
             state.gone = true;
         }
         if state.gone {
-            return Err(Error::device(
-                "mock LED controller",
-                format!("the port vanished during \"{line}\""),
-            ));
+            return Err(Error::Link {
+                device: "mock LED controller".into(),
+                source: LinkError::Vanished {
+                    what: format!("\"{line}\""),
+                    source: std::io::Error::new(
+                        std::io::ErrorKind::BrokenPipe,
+                        "the mock's fault plan",
+                    ),
+                },
+            });
         }
         state.apply_silence();
         state.log.push(line.clone());
@@ -98,13 +104,22 @@ impl MockLights {
             _ => None,
         });
         if let Some(code) = refusal {
-            return Err(Error::device(
-                "mock LED controller",
-                format!("the controller refused \"{line}\": ERR {code}"),
-            ));
+            return Err(refused(&line, code, "(the mock's fault plan)"));
         }
         state.last_contact = Instant::now();
         action(&mut state)
+    }
+}
+
+/// The mock's `ERR` answer to `line`, as the serial link reports one.
+fn refused(line: &str, code: u32, reason: &str) -> Error {
+    Error::Link {
+        device: "mock LED controller".into(),
+        source: LinkError::Refused {
+            what: format!("\"{line}\""),
+            code,
+            reason: reason.into(),
+        },
     }
 }
 
@@ -147,10 +162,7 @@ impl LightController for MockLights {
         let leds = self.leds;
         self.request(format!("ON {led}"), |s| {
             if led >= leds {
-                return Err(Error::device(
-                    "mock LED controller",
-                    format!("the controller refused \"ON {led}\": ERR 4 out of range"),
-                ));
+                return Err(refused(&format!("ON {led}"), 4, "out of range"));
             }
             s.on = Some(led);
             s.tripped = false;

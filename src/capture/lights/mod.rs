@@ -11,6 +11,7 @@ pub mod keepalive;
 pub mod mock;
 pub mod ports;
 pub mod protocol;
+pub mod selftest;
 pub mod serial;
 
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -19,6 +20,7 @@ pub use keepalive::{Keepalive, Lease};
 pub use mock::{MockFault, MockLights, MockProbe};
 pub use ports::{list_ports, resolve_port, PortInfo};
 pub use protocol::{FirmwareInfo, LightState};
+pub use selftest::{test_leds, LedCheck, LedTest};
 pub use serial::{LineNoise, SerialLights, SerialOptions};
 
 use crate::error::Result;
@@ -70,5 +72,13 @@ impl SharedLights {
                  when the host has been silent longer than its timeout"
             ),
         }
+    }
+}
+
+/// A controller's `on` state in words: `LED k on` or `all LEDs off`.
+pub fn describe_on(on: Option<usize>) -> String {
+    match on {
+        Some(k) => format!("LED {k} on"),
+        None => "all LEDs off".into(),
     }
 }

@@ -12,7 +12,7 @@ use super::protocol::{
     TIMEOUT_RANGE_MS,
 };
 use super::LightController;
-use crate::error::{Error, Result};
+use crate::error::{Error, LinkError, PortProblem, Result};
 
 /// How to talk to the controller.
 #[derive(Clone, Debug)]
@@ -47,9 +47,9 @@ pub struct LineNoise {
     pub garbage: Vec<u8>,
 }
 
-/// Why one request failed.
+/// Why one request failed, before it is named ([`LinkError`] says which request).
 #[derive(Debug)]
-enum LinkError {
+enum Failure {
     /// No complete answer line in time.
     Timeout,
     /// The port is gone (EOF, hang-up, I/O error).
@@ -136,10 +136,10 @@ impl SerialLights {
             match parse_reply(&received) {
                 Ok(Reply::Ok(rest)) => return Ok(rest),
                 Ok(Reply::Err { code, reason }) => {
-                    return Err(self.error(LinkError::Refused { code, reason }, &quote_bytes(bytes)))
+                    return Err(self.error(Failure::Refused { code, reason }, &quote_bytes(bytes)))
                 }
                 Ok(Reply::Ready(_)) => self.note_reset(),
-                Err(m) => return Err(self.error(LinkError::Malformed(m), &quote_bytes(bytes))),
+                Err(m) => return Err(self.error(Failure::Malformed(m), &quote_bytes(bytes))),
             }
         }
     }
@@ -165,8 +165,8 @@ impl SerialLights {
             match self.read_line(deadline) {
                 Ok(line) if line.starts_with("READY ") => return Ok(()),
                 Ok(_) => continue,
-                Err(LinkError::Timeout) => return Ok(()),
-                Err(LinkError::Malformed(_)) => continue,
+                Err(Failure::Timeout) => return Ok(()),
+                Err(Failure::Malformed(_)) => continue,
                 Err(e) => return Err(self.error(e, "the handshake")),
             }
         }
@@ -180,7 +180,7 @@ impl SerialLights {
         let what = quote(&command.line());
         match self.exchange(command) {
             Ok(answer) => Ok(answer),
-            Err(e @ LinkError::Vanished(_)) => Err(self.error(e, &what)),
+            Err(e @ Failure::Vanished(_)) => Err(self.error(e, &what)),
             Err(_first) => {
                 self.resync().map_err(|e| self.error(e, &what))?;
                 self.exchange(command)
@@ -190,7 +190,7 @@ impl SerialLights {
     }
 
     /// Sends one line and reads until its answer.
-    fn exchange(&mut self, command: Command) -> std::result::Result<Answer, LinkError> {
+    fn exchange(&mut self, command: Command) -> std::result::Result<Answer, Failure> {
         let line = command.line();
         let mut bytes = Vec::with_capacity(line.len() + 8);
         if let Some(noise) = self
@@ -207,11 +207,9 @@ impl SerialLights {
         let deadline = Instant::now() + self.options.command_timeout;
         loop {
             let received = self.read_line(deadline)?;
-            match parse_reply(&received).map_err(LinkError::Malformed)? {
-                Reply::Ok(rest) => {
-                    return command.check_answer(&rest).map_err(LinkError::Malformed)
-                }
-                Reply::Err { code, reason } => return Err(LinkError::Refused { code, reason }),
+            match parse_reply(&received).map_err(Failure::Malformed)? {
+                Reply::Ok(rest) => return command.check_answer(&rest).map_err(Failure::Malformed),
+                Reply::Err { code, reason } => return Err(Failure::Refused { code, reason }),
                 // A reset during the session: the command may have been lost with it; keep
                 // reading until the deadline, the retry sends it again.
                 Reply::Ready(_) => self.note_reset(),
@@ -228,7 +226,7 @@ impl SerialLights {
     /// After a lost or damaged answer: a bare LF (always answered with exactly one `ERR 1`),
     /// then everything read until the line has been quiet for a moment is dropped. If the
     /// board reset meanwhile, the timeout this host had set is sent again.
-    fn resync(&mut self) -> std::result::Result<(), LinkError> {
+    fn resync(&mut self) -> std::result::Result<(), Failure> {
         let resets_before = self.resets;
         self.write(b"\n")?;
         let quiet = Duration::from_millis(150);
@@ -241,8 +239,8 @@ impl SerialLights {
                     }
                     deadline = Instant::now() + quiet;
                 }
-                Err(LinkError::Timeout) => break,
-                Err(LinkError::Malformed(_)) => deadline = Instant::now() + quiet,
+                Err(Failure::Timeout) => break,
+                Err(Failure::Malformed(_)) => deadline = Instant::now() + quiet,
                 Err(e) => return Err(e),
             }
         }
@@ -255,9 +253,9 @@ impl SerialLights {
         Ok(())
     }
 
-    fn write(&mut self, bytes: &[u8]) -> std::result::Result<(), LinkError> {
+    fn write(&mut self, bytes: &[u8]) -> std::result::Result<(), Failure> {
         if self.vanished {
-            return Err(LinkError::Vanished(std::io::Error::new(
+            return Err(Failure::Vanished(std::io::Error::new(
                 ErrorKind::BrokenPipe,
                 "the port went away earlier",
             )));
@@ -266,14 +264,14 @@ impl SerialLights {
     }
 
     /// The next complete line (LF removed), waiting until `deadline`.
-    fn read_line(&mut self, deadline: Instant) -> std::result::Result<String, LinkError> {
+    fn read_line(&mut self, deadline: Instant) -> std::result::Result<String, Failure> {
         let mut buf = [0u8; 256];
         loop {
             if let Some(end) = self.rx.iter().position(|&b| b == b'\n') {
                 let line: Vec<u8> = self.rx.drain(..=end).take(end).collect();
                 return match String::from_utf8(line) {
                     Ok(text) => Ok(text),
-                    Err(e) => Err(LinkError::Malformed(format!(
+                    Err(e) => Err(Failure::Malformed(format!(
                         "an answer that is not text: {}",
                         quote_bytes(e.as_bytes())
                     ))),
@@ -282,19 +280,19 @@ impl SerialLights {
             if self.rx.len() > MAX_ANSWER {
                 let head = quote_bytes(&self.rx);
                 self.rx.clear();
-                return Err(LinkError::Malformed(format!(
+                return Err(Failure::Malformed(format!(
                     "more than {MAX_ANSWER} bytes without a line end ({head}): line noise, a \
                      wrong baud rate, or not a psscan LED controller"
                 )));
             }
             if self.vanished {
-                return Err(LinkError::Vanished(std::io::Error::new(
+                return Err(Failure::Vanished(std::io::Error::new(
                     ErrorKind::BrokenPipe,
                     "the port went away earlier",
                 )));
             }
             if Instant::now() >= deadline {
-                return Err(LinkError::Timeout);
+                return Err(Failure::Timeout);
             }
             match self.port.read(&mut buf) {
                 Ok(0) => {
@@ -310,55 +308,48 @@ impl SerialLights {
         }
     }
 
-    fn classify(&mut self, e: std::io::Error) -> LinkError {
+    fn classify(&mut self, e: std::io::Error) -> Failure {
         if e.kind() == ErrorKind::TimedOut {
-            return LinkError::Timeout;
+            return Failure::Timeout;
         }
         self.vanished = true;
-        LinkError::Vanished(e)
+        Failure::Vanished(e)
     }
 
-    fn error(&self, e: LinkError, what: &str) -> Error {
-        let timeout_ms = self.options.command_timeout.as_millis();
-        let message = match e {
-            LinkError::Timeout => format!(
-                "no answer to {what} within {timeout_ms} ms: is this the psscan LED controller \
-                 (firmware/), at {} baud?",
-                self.options.baud
-            ),
-            LinkError::Vanished(io) => format!(
-                "the port vanished during {what} ({io}): USB cable unplugged, board without \
-                 power, or emulator stopped"
-            ),
-            LinkError::Malformed(m) => format!("bad answer to {what}: {m}"),
-            LinkError::Refused { code, reason } => {
-                format!("the controller refused {what}: ERR {code} {reason}")
-            }
+    fn error(&self, e: Failure, what: &str) -> Error {
+        let what = what.to_string();
+        let source = match e {
+            Failure::Timeout => LinkError::Timeout {
+                what,
+                timeout_ms: self.options.command_timeout.as_millis(),
+                baud: self.options.baud,
+            },
+            Failure::Vanished(source) => LinkError::Vanished { what, source },
+            Failure::Malformed(message) => LinkError::Malformed { what, message },
+            Failure::Refused { code, reason } => LinkError::Refused { what, code, reason },
         };
-        Error::device(self.device(), message)
+        Error::Link {
+            device: self.device(),
+            source,
+        }
     }
 }
 
 fn open_error(path: &str, e: serialport::Error) -> Error {
-    let hint = match &e.kind {
-        _ if e.description.contains("lock") => {
-            " (the port is in use by another program, perhaps another psscan)"
-        }
-        serialport::ErrorKind::NoDevice => {
-            " (no such device: is the board plugged in? `psscan lights ports` lists ports)"
-        }
-        serialport::ErrorKind::Io(ErrorKind::NotFound) => {
-            " (no such port: `psscan lights ports` lists ports)"
-        }
-        serialport::ErrorKind::Io(ErrorKind::PermissionDenied) => {
-            " (permission denied: add your user to the `dialout` group and log in again)"
-        }
-        _ => "",
+    let problem = match &e.kind {
+        _ if e.description.contains("lock") => PortProblem::InUse,
+        serialport::ErrorKind::NoDevice => PortProblem::NoDevice,
+        serialport::ErrorKind::Io(ErrorKind::NotFound) => PortProblem::NotFound,
+        serialport::ErrorKind::Io(ErrorKind::PermissionDenied) => PortProblem::PermissionDenied,
+        _ => PortProblem::Other,
     };
-    Error::device(
-        format!("LED controller on {path}"),
-        format!("cannot open the port: {e}{hint}"),
-    )
+    Error::Link {
+        device: format!("LED controller on {path}"),
+        source: LinkError::Unopened {
+            problem,
+            source: e.into(),
+        },
+    }
 }
 
 impl LightController for SerialLights {

@@ -4,15 +4,13 @@
 
 use std::path::Path;
 
-use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{DynamicImage, ImageBuffer};
 use rayon::prelude::*;
 
 use super::{HeightReport, SolvedMaps};
 use crate::error::{Error, Result};
-use crate::fsutil::write_atomic;
+use crate::io::{write_exr, write_png};
 use crate::maps::encode::linear_to_srgb;
-use crate::maps::write::write_exr;
 use crate::maps::NormalConvention;
 use crate::plane::Plane;
 
@@ -110,14 +108,4 @@ pub fn write_rgb(path: &Path, w: usize, h: usize, data: &[f32], bits: u8) -> Res
         DynamicImage::ImageRgb16(ImageBuffer::from_raw(w as u32, h as u32, v).ok_or_else(bad)?)
     };
     write_png(path, &image)
-}
-
-pub fn write_png(path: &Path, image: &DynamicImage) -> Result<()> {
-    let mut bytes = Vec::new();
-    let encoder =
-        PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, FilterType::Adaptive);
-    image
-        .write_with_encoder(encoder)
-        .map_err(|e| Error::image(path, e))?;
-    write_atomic(path, &bytes)
 }

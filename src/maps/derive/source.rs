@@ -6,7 +6,7 @@ use std::path::Path;
 use serde_json::Value;
 
 use crate::error::{Error, Result};
-use crate::maps::write::read_exr;
+use crate::io::read_exr;
 use crate::maps::{NormalConvention, REPORT_FILE};
 use crate::plane::Plane;
 use crate::solve::{PixelStatus, SheenModel, SolveResult};

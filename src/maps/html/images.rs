@@ -10,8 +10,8 @@ use image::{ImageEncoder, RgbImage};
 
 use super::relight::{linear_to_srgb, RelightTextures};
 use crate::error::{Error, Result};
+use crate::io::read_exr;
 use crate::maps::encode::NormalConvention;
-use crate::maps::write::read_exr;
 use crate::plane::Plane;
 
 /// Longest side of the display-size maps (and the relight canvas).

@@ -10,8 +10,8 @@
 use std::path::Path;
 use std::time::Duration;
 
-use super::{Camera, Shot};
-use crate::capture::emulator::{unix_now_us, PinLog};
+use super::emulator::PinLog;
+use crate::capture::camera::{unix_now_us, Camera, Shot};
 use crate::capture::interrupt::Interrupt;
 use crate::capture::lights::{MockProbe, SharedLights};
 use crate::capture::manifest::{CameraSettings, ImageInfo};

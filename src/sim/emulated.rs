@@ -10,8 +10,8 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::capture::camera::{LitSource, SimCamera};
-use crate::capture::emulator::{Emulator, EmulatorFiles, PinLog};
+use super::camera::{ControllerState, LitSource, SimCamera};
+use super::emulator::{Emulator, EmulatorFiles, PinLog};
 use crate::capture::lights::{FirmwareInfo, SerialLights, SerialOptions, SharedLights};
 use crate::capture::{run_capture, CaptureOptions, CaptureReport, Interrupt, SyntheticInfo};
 use crate::error::Result;
@@ -49,6 +49,21 @@ impl EmulatedController {
 
     pub fn pin_log(&self) -> PinLog {
         self.emulator.pin_log()
+    }
+}
+
+/// Where a simulated camera learns which LEDs are on, chosen the same way by every command: the
+/// emulator's pin log when the firmware runs in its emulator, else the pin log at `pin_log`
+/// (a board whose pins are logged), else the controller's own answer to `STATE`.
+pub fn lit_source(
+    emulated: Option<&EmulatedController>,
+    pin_log: Option<&Path>,
+    lights: &SharedLights,
+) -> Box<dyn LitSource> {
+    match (emulated, pin_log) {
+        (Some(emulated), _) => Box::new(emulated.pin_log()),
+        (None, Some(path)) => Box::new(PinLog::new(path)),
+        (None, None) => Box::new(ControllerState(lights.clone())),
     }
 }
 

@@ -12,16 +12,14 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use super::sim::LitSource;
-use super::{Camera, Shot};
-use crate::calibration::graychart::ChartDescription;
-use crate::capture::emulator::unix_now_us;
+use super::camera::LitSource;
+use crate::capture::camera::{unix_now_us, Camera, Shot};
 use crate::capture::interrupt::Interrupt;
 use crate::capture::manifest::{CameraSettings, ImageInfo};
 use crate::error::{Error, Result};
 use crate::plane::{RgbPlanes, SensorWindow};
 use crate::raw::{encode_png16, DnImage, Levels};
-use crate::rig::Rig;
+use crate::rig::{ChartDescription, Rig};
 use crate::synth::targets::{self, BoardPose, Chessboard, RayGrid, ViewRender};
 use crate::synth::{expose, Noise};
 
@@ -267,8 +265,8 @@ impl Camera for TargetCamera {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::calibration::camera::Board;
     use crate::capture::lights::{LightController, MockLights};
+    use crate::rig::Board;
 
     #[test]
     fn the_target_is_lit_by_the_leds_that_are_on() {

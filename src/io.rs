@@ -1,0 +1,187 @@
+//! Image files (DESIGN.md layer 2): 16-bit PNG and float EXR, read and written (atomically),
+//! for every reader and writer of the house. Nothing here knows what the pixels mean.
+
+use std::io::Cursor;
+use std::path::Path;
+
+use exr::prelude::*;
+use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+use image::{DynamicImage, ImageBuffer, Rgb};
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error as PsError, Result};
+use crate::fsutil::write_atomic;
+use crate::plane::Plane;
+
+/// How hard the PNG maps' deflate works.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PngCompression {
+    /// A fast deflate: files a little larger, written several times sooner (the default).
+    #[default]
+    Fast,
+    /// The smallest files the encoder makes, for archives; much slower.
+    Best,
+}
+
+impl PngCompression {
+    fn settings(self) -> (CompressionType, FilterType) {
+        match self {
+            PngCompression::Fast => (CompressionType::Fast, FilterType::Adaptive),
+            PngCompression::Best => (CompressionType::Best, FilterType::Adaptive),
+        }
+    }
+}
+
+/// Writes interleaved 16-bit RGB as a PNG (fast deflate).
+pub fn write_png16(path: &Path, width: usize, height: usize, rgb: Vec<u16>) -> Result<()> {
+    let bytes = encode_png16(path, width, height, rgb, PngCompression::Fast)?;
+    write_atomic(path, &bytes)
+}
+
+/// Interleaved 16-bit RGB encoded as PNG file bytes; `path` only names the file in errors.
+pub fn encode_png16(
+    path: &Path,
+    width: usize,
+    height: usize,
+    rgb: Vec<u16>,
+    compression: PngCompression,
+) -> Result<Vec<u8>> {
+    let buffer: ImageBuffer<Rgb<u16>, Vec<u16>> =
+        ImageBuffer::from_raw(width as u32, height as u32, rgb)
+            .ok_or_else(|| PsError::image(path, "image size does not match its data"))?;
+    let mut bytes = Vec::new();
+    let (level, filter) = compression.settings();
+    let encoder = PngEncoder::new_with_quality(&mut bytes, level, filter);
+    DynamicImage::ImageRgb16(buffer)
+        .write_with_encoder(encoder)
+        .map_err(|e| PsError::image(path, e))?;
+    Ok(bytes)
+}
+
+/// Writes an image as a PNG (fast deflate, adaptive filter), atomically.
+pub fn write_png(path: &Path, image: &DynamicImage) -> Result<()> {
+    let mut bytes = Vec::new();
+    let encoder =
+        PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, FilterType::Adaptive);
+    image
+        .write_with_encoder(encoder)
+        .map_err(|e| PsError::image(path, e))?;
+    write_atomic(path, &bytes)
+}
+
+/// Writes named `f32` channels of one size as a single-layer EXR (lossless compression).
+pub fn write_exr(path: &Path, channels: &[(&str, &Plane)]) -> Result<()> {
+    let bytes = encode_exr(path, channels)?;
+    write_atomic(path, &bytes)
+}
+
+/// Named `f32` channels of one size encoded as single-layer EXR file bytes (lossless; the
+/// exr crate compresses its blocks on all cores); `path` only names the file in errors.
+pub fn encode_exr(path: &Path, channels: &[(&str, &Plane)]) -> Result<Vec<u8>> {
+    let Some((_, first)) = channels.first() else {
+        return Err(PsError::image(path, "no channels to write"));
+    };
+    let (width, height) = (first.width, first.height);
+    if channels
+        .iter()
+        .any(|(_, p)| p.width != width || p.height != height)
+    {
+        return Err(PsError::image(path, "channels of different sizes"));
+    }
+    let list = channels
+        .iter()
+        .map(|(name, plane)| AnyChannel::new(*name, FlatSamples::F32(plane.data.clone())))
+        .collect();
+    let layer = Layer::new(
+        (width, height),
+        LayerAttributes::named("psscan"),
+        Encoding::FAST_LOSSLESS,
+        AnyChannels::sort(list),
+    );
+    let mut cursor = Cursor::new(Vec::new());
+    Image::from_layer(layer)
+        .write()
+        .to_buffered(&mut cursor)
+        .map_err(|e| PsError::image(path, e))?;
+    Ok(cursor.into_inner())
+}
+
+/// Reads the named channels of an EXR's first layer; fails naming a missing channel.
+pub fn read_exr(path: &Path, names: &[&str]) -> Result<Vec<Plane>> {
+    let bytes = std::fs::read(path).map_err(|e| PsError::io(path, e))?;
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(Cursor::new(bytes))
+        .map_err(|e| PsError::image(path, e))?;
+    let layer = &image.layer_data;
+    let (width, height) = (layer.size.width(), layer.size.height());
+    names
+        .iter()
+        .map(|name| {
+            let channel = layer
+                .channel_data
+                .list
+                .iter()
+                .find(|c| c.name.to_string() == *name)
+                .ok_or_else(|| PsError::image(path, format!("has no channel \"{name}\"")))?;
+            Plane::from_vec(width, height, channel.sample_data.values_as_f32().collect())
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn exr_round_trip_is_exact_and_missing_channels_are_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("x.exr");
+        let a = Plane::from_vec(3, 2, vec![0.1, -2.0, 3.5, 1e-7, f32::MAX, 0.0]).unwrap();
+        let b = Plane::new(3, 2, 0.25);
+        write_exr(&path, &[("R", &a), ("residual", &b)]).unwrap();
+        let back = read_exr(&path, &["residual", "R"]).unwrap();
+        assert_eq!(back[0], b);
+        assert_eq!(back[1], a);
+        let err = read_exr(&path, &["G"]).unwrap_err().to_string();
+        assert!(err.contains("x.exr") && err.contains("\"G\""), "{err}");
+    }
+
+    #[test]
+    fn png16_is_written_and_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("n.png");
+        let data: Vec<u16> = (0..12).map(|v| v * 5000).collect();
+        write_png16(&path, 2, 2, data.clone()).unwrap();
+        let back = image::open(&path).unwrap().into_rgb16().into_raw();
+        assert_eq!(back, data);
+    }
+
+    #[test]
+    fn best_png_compression_keeps_the_pixels_and_is_no_larger_than_fast() {
+        // A smooth gradient with a little structure: deflate has something to find.
+        let (w, h) = (64, 48);
+        let data: Vec<u16> = (0..w * h * 3)
+            .map(|i| ((i / 3) % w * 900 + (i / 3) / w * 37 + (i % 3) * 5) as u16)
+            .collect();
+        let path = Path::new("gradient.png");
+        let fast = encode_png16(path, w, h, data.clone(), PngCompression::Fast).unwrap();
+        let best = encode_png16(path, w, h, data.clone(), PngCompression::Best).unwrap();
+        assert_ne!(fast, best, "the flag must change the encoder's settings");
+        assert!(
+            best.len() <= fast.len(),
+            "best {} > fast {}",
+            best.len(),
+            fast.len()
+        );
+        for bytes in [&fast, &best] {
+            let back = image::load_from_memory(bytes).unwrap().into_rgb16();
+            assert_eq!(back.into_raw(), data);
+        }
+    }
+}
