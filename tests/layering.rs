@@ -35,8 +35,6 @@ const LAYERS: &[(&str, u32)] = &[
     ("capture", 5),
     ("calibration", 6),
     ("sets", 7),
-    ("pipeline", 7),
-    ("offline", 7),
     ("synth", 7),
     ("sim", 7),
     ("emulated", 7),
@@ -55,7 +53,6 @@ const KNOWN_UPWARD: &[(&str, &str)] = &[
     ("capture", "calibration"),
     ("capture", "synth"),
     ("maps", "calibration"),
-    ("pipeline", "synth"),
     ("solve", "eval"),
 ];
 

@@ -360,7 +360,7 @@ fn solve_once(
     let input = SolveInput {
         frames,
         lights: LightSource::Rig(rig),
-        noise: crate::pipeline::noise_model(rig, &Levels::from_sensor(&rig.sensor)),
+        noise: crate::sets::noise_model(rig, &Levels::from_sensor(&rig.sensor)),
         exposure: 1.0,
         mask: None,
     };
@@ -587,7 +587,7 @@ fn cpu_name() -> String {
 
 /// The noise model the benchmark's frames were exposed with.
 pub fn bench_noise(rig: &Rig) -> NoiseModel {
-    crate::pipeline::noise_model(rig, &Levels::from_sensor(&rig.sensor))
+    crate::sets::noise_model(rig, &Levels::from_sensor(&rig.sensor))
 }
 
 #[cfg(test)]

@@ -505,7 +505,7 @@ fn describe_on(on: Option<usize>) -> String {
 pub fn demo_firmware_sim(
     out: &Path,
     scene: &SceneArgs,
-    job: &psscan::pipeline::SolveJob,
+    job: &psscan::sets::SolveJob,
     json: bool,
     bars: &Bars,
 ) -> anyhow::Result<()> {
