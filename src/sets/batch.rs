@@ -26,8 +26,9 @@ pub struct BatchOptions {
 }
 
 impl Default for BatchOptions {
-    /// One set at a time, its pixels in parallel: measured as fast as two sets at once on
-    /// two cores (benches/decode.rs), with half the memory.
+    /// One set at a time, its pixels in parallel: each set's decode and solve already use
+    /// every core, and one set's frames are held instead of several (benches/decode.rs
+    /// times one set at a time against several).
     fn default() -> Self {
         BatchOptions { parallel_sets: 1 }
     }
@@ -36,7 +37,9 @@ impl Default for BatchOptions {
 /// One set's outcome.
 #[derive(Clone, Debug, Serialize)]
 pub struct SetOutcome {
+    /// The set's folder, as given.
     pub set: PathBuf,
+    /// Its output folder.
     pub out: PathBuf,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub kind: Option<SetKind>,
@@ -51,9 +54,13 @@ pub struct SetOutcome {
 /// The headline figures of a solved set (the full figures are in its `report.json`).
 #[derive(Clone, Debug, Serialize)]
 pub struct SetSummary {
+    /// Map width in pixels.
     pub width: usize,
+    /// Map height in pixels.
     pub height: usize,
+    /// Pixels with a solution.
     pub solved_pixels: usize,
+    /// Mean predicted normal error from sensor noise (NaN: not computed).
     pub predicted_normal_error_deg: f64,
     /// Mean angular error against ground truth, when the set has it.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -61,7 +68,9 @@ pub struct SetSummary {
     /// The solve's warnings (see `Report::warnings`).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub warnings: Vec<String>,
+    /// Wall time, seconds.
     pub seconds: f64,
+    /// The set's `report.json`.
     pub report: PathBuf,
 }
 
@@ -90,10 +99,15 @@ impl SetSummary {
 /// What `psscan solve` with several sets prints with `--json`.
 #[derive(Clone, Debug, Serialize)]
 pub struct BatchSummary {
+    /// Every set's outcome, in the order given.
     pub sets: Vec<SetOutcome>,
+    /// Sets solved.
     pub solved: usize,
+    /// Sets that failed.
     pub failed: usize,
+    /// How the batch ran.
     pub options: BatchOptions,
+    /// Wall time, seconds.
     pub seconds: f64,
 }
 

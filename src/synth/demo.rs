@@ -20,32 +20,48 @@ use crate::sets::{solve_set, SolveJob};
 /// The figures `psscan demo --json` prints.
 #[derive(Clone, Debug, Serialize)]
 pub struct DemoSummary {
+    /// The rig's name.
     pub rig: String,
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// LEDs (frames).
     pub lights: usize,
+    /// Normal error against the ground truth, degrees.
     pub normal_error_deg: Stats,
+    /// Mean normal error the sensor-noise model predicts.
     pub predicted_normal_error_deg: Mean,
+    /// Relative albedo error against the ground truth.
     pub albedo_rel_error: Stats,
+    /// Pixels with a solution.
     pub solved_pixels: usize,
     /// The solve's warnings (see `Report::warnings`).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub warnings: Vec<String>,
+    /// Phases of the demo, seconds (`synth_*`, `solve_*`, `total`).
     pub timings_s: BTreeMap<String, f64>,
+    /// Where the demo wrote.
     pub paths: DemoPaths,
 }
 
+/// Where `psscan demo` wrote.
 #[derive(Clone, Debug, Serialize)]
 pub struct DemoPaths {
+    /// The synthetic capture set.
     pub capture: PathBuf,
+    /// The solve's output folder.
     pub maps: PathBuf,
+    /// The solve's `report.json`.
     pub report: PathBuf,
+    /// The maps written.
     pub outputs: WrittenMaps,
 }
 
 /// The demo folder's entries, as its ownership record lists them (sub-folders with records
 /// of their own).
 pub const DEMO_CAPTURE: &str = "capture/";
+/// The demo's solve output folder (see [`DEMO_CAPTURE`]).
 pub const DEMO_MAPS: &str = "maps/";
 
 /// Renders the synthetic textile with the embedded default rig into `out/capture`, solves it

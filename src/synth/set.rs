@@ -63,10 +63,15 @@ fn synthetic_camera(encoding: FrameEncoding) -> (CameraSettings, RawMeta) {
 /// What `write_synthetic_set` produced.
 #[derive(Clone, Debug, Serialize)]
 pub struct SynthOutcome {
+    /// The set's folder.
     pub dir: PathBuf,
+    /// Frame width in pixels.
     pub width: usize,
+    /// Frame height in pixels.
     pub height: usize,
+    /// Light frames (one per LED).
     pub lights: usize,
+    /// Phases (`scene`, `render_and_write`), seconds.
     pub timings_s: BTreeMap<String, f64>,
 }
 
