@@ -8,7 +8,7 @@
 //!    process start to its 16-bit PNM written to /dev/null (its file read and PNM encode are
 //!    included, its process start is a few ms).
 //! 2. End to end: a 16 MP, 10-light DNG set (plus dark frame) from RAW files to written maps
-//!    (`pipeline::solve_capture_set`), at full and at half resolution.
+//!    (`sets::solve_set`), at full and at half resolution.
 //! 3. Batches: four 3 MP DNG sets solved one at a time (pixels in parallel) and two at a time.
 //!
 //! Prints a markdown table and writes `target/bench/decode.json`. The sets are rendered once
@@ -21,12 +21,11 @@ use std::process::Command;
 use std::time::Instant;
 
 use psscan::capture::CaptureSet;
-use psscan::offline::{self, BatchOptions};
-use psscan::pipeline::{self, SolveJob};
 use psscan::progress::Silent;
 use psscan::raw::{self, DevelopOptions, Resolution};
 use psscan::rig::Rig;
-use psscan::synth::{FrameEncoding, SynthSpec};
+use psscan::sets::{self, BatchOptions, SolveJob};
+use psscan::synth::{self, FrameEncoding, SynthSpec};
 use serde_json::{json, Value};
 
 fn main() {
@@ -208,7 +207,7 @@ fn main() {
             ..SolveJob::default()
         };
         let t = Instant::now();
-        let report = pipeline::solve_capture_set(&big, &out, &job, &Silent).unwrap();
+        let report = sets::solve_set(&big, &out, &job, &Silent).unwrap();
         let seconds = t.elapsed().as_secs_f64();
         let truth = report.truth.as_ref().map(|t| t.normal_error_deg.mean);
         e2e.insert(
@@ -241,8 +240,7 @@ fn main() {
             ..SolveJob::default()
         };
         let t = Instant::now();
-        let summary =
-            offline::solve_sets(&batch, &out, &job, BatchOptions { parallel_sets }, &Silent);
+        let summary = sets::solve_sets(&batch, &out, &job, BatchOptions { parallel_sets }, &Silent);
         assert_eq!(summary.failed, 0);
         batches.insert(parallel_sets, t.elapsed().as_secs_f64());
     }
@@ -313,7 +311,7 @@ fn ensure_set(rig: &Rig, dir: &Path, w: usize, h: usize, seed: u64) -> f64 {
         ..SynthSpec::demo()
     };
     let t = Instant::now();
-    pipeline::write_synthetic_set(rig, &spec, dir, true, &Silent).unwrap();
+    synth::write_synthetic_set(rig, &spec, dir, true, &Silent).unwrap();
     t.elapsed().as_secs_f64()
 }
 

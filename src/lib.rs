@@ -4,8 +4,8 @@
 //! [`capture`] produces capture sets on disk (the synthetic rig in [`synth`] produces the same
 //! sets with ground truth); [`raw`] decodes frames into linear [`plane::Frames`]; [`solve`]
 //! turns frames into a [`solve::SolveResult`]; [`maps`] writes the maps and the report.
-//! [`pipeline`] strings the stages together for the CLI; [`offline`] solves saved sets in
-//! batches.
+//! [`sets`] opens a set of any kind (capture set, DiLiGenT folder, synthetic scene in memory)
+//! and solves it through one path, alone or in batches.
 
 // Pixel and channel loops index several parallel planes at once; an index reads better there
 // than zipped iterators.
@@ -21,13 +21,12 @@ pub mod fsutil;
 pub mod io;
 pub mod maps;
 pub mod math;
-pub mod offline;
-pub mod pipeline;
 pub mod plane;
 pub mod progress;
 pub mod raw;
 pub mod region;
 pub mod rig;
+pub mod sets;
 pub mod sim;
 pub mod solve;
 pub mod synth;

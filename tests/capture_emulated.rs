@@ -18,13 +18,13 @@ use psscan::capture::lights::{LightController, LineNoise, SerialLights, SerialOp
 use psscan::capture::{
     run_capture, CameraSettings, CaptureOptions, CaptureReport, CaptureSet, ImageInfo, Interrupt,
 };
-use psscan::pipeline::{self, SolveJob};
 use psscan::progress::Silent;
 use psscan::rig::Rig;
+use psscan::sets::{self, SolveJob};
 use psscan::sim::emulated::{capture_synthetic, write_scene_truth, EmulatedController};
 use psscan::sim::emulator::{PinHistory, PinLog};
 use psscan::sim::SimCamera;
-use psscan::synth::SynthSpec;
+use psscan::synth::{self, SynthSpec};
 use psscan::{Error, Result};
 
 /// 64 x 48 pixels over most of the sensor (every 64th pixel): fast, and enough pixels for
@@ -166,7 +166,7 @@ fn resume_and_compare(dir: &Path, scratch: &Path, reference: &Path, expect_shot:
 }
 
 fn in_process_reference(dir: &Path) {
-    pipeline::write_synthetic_set(&Rig::default_rig(), &spec(), dir, false, &Silent).unwrap();
+    synth::write_synthetic_set(&Rig::default_rig(), &spec(), dir, false, &Silent).unwrap();
 }
 
 #[test]
@@ -268,8 +268,8 @@ fn emulated_capture_equals_the_in_process_render_and_solves_as_accurately() {
     same_frames(&emulated, &reference);
 
     let job = SolveJob::default();
-    let a = pipeline::solve_capture_set(&emulated, &tmp.path().join("a"), &job, &Silent).unwrap();
-    let b = pipeline::solve_capture_set(&reference, &tmp.path().join("b"), &job, &Silent).unwrap();
+    let a = sets::solve_set(&emulated, &tmp.path().join("a"), &job, &Silent).unwrap();
+    let b = sets::solve_set(&reference, &tmp.path().join("b"), &job, &Silent).unwrap();
     let (ta, tb) = (a.truth.unwrap(), b.truth.unwrap());
     assert_eq!(ta.normal_error_deg.mean, tb.normal_error_deg.mean);
     assert_eq!(ta.albedo_rel_error.mean, tb.albedo_rel_error.mean);

@@ -21,9 +21,8 @@
 use std::path::{Path, PathBuf};
 
 use psscan::capture::DiligentSet;
-use psscan::offline;
-use psscan::pipeline::SolveJob;
 use psscan::progress::Silent;
+use psscan::sets::{self, SolveJob};
 use psscan::solve::{self, LightSource, NoiseModel, SolveInput};
 
 fn bunny(variant: &str) -> PathBuf {
@@ -50,7 +49,7 @@ fn the_bunny_sets_reproduce_the_reference_errors() {
         ("bunny_specular", 18.47, 18.9089),
     ] {
         let out = dir.path().join(variant);
-        let report = offline::solve_set(&bunny(variant), &out, &least_squares(), &Silent).unwrap();
+        let report = sets::solve_set(&bunny(variant), &out, &least_squares(), &Silent).unwrap();
         let truth = report
             .normal_truth
             .as_ref()

@@ -185,6 +185,8 @@ fn the_report_records_how_the_maps_were_written() {
     let set = &sets().lambertian;
     let (plain, _) = solve(set, &[]);
     assert_eq!(plain["maps"]["normal_convention"], "opengl");
+    // Recorded once: readers (the page, derive) take it from `maps`.
+    assert!(plain.get("normal_convention").is_none(), "{plain}");
     assert_eq!(plain["maps"]["png"], true);
     assert_eq!(plain["maps"]["exr"], true);
     let (dx, _) = solve(

@@ -3,12 +3,11 @@
 //! and half resolution.
 
 use psscan::capture::CaptureSet;
-use psscan::pipeline;
 use psscan::plane::Frames;
 use psscan::progress::Silent;
 use psscan::raw::{DevelopOptions, Resolution};
 use psscan::rig::Rig;
-use psscan::synth::{FrameEncoding, SynthSpec};
+use psscan::synth::{self, FrameEncoding, SynthSpec};
 
 fn load(set: &CaptureSet, resolution: Resolution, threads: usize) -> Frames {
     let pool = rayon::ThreadPoolBuilder::new()
@@ -44,7 +43,7 @@ fn parallel_decode_gives_the_planes_of_a_serial_one() {
             encoding,
             ..SynthSpec::demo()
         };
-        pipeline::write_synthetic_set(&rig, &spec, dir.path(), false, &Silent).unwrap();
+        synth::write_synthetic_set(&rig, &spec, dir.path(), false, &Silent).unwrap();
         let set = CaptureSet::open(dir.path(), None).unwrap();
         let resolutions: &[Resolution] = match encoding {
             FrameEncoding::Dng => &[Resolution::Full, Resolution::Half],

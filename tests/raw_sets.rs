@@ -7,13 +7,13 @@ use std::path::Path;
 
 use psscan::capture::CaptureSet;
 use psscan::eval::{self, Stats};
-use psscan::pipeline::{self, SolveJob};
 use psscan::plane::Plane;
 use psscan::progress::Silent;
 use psscan::raw::{self, DevelopOptions, Mosaic, Resolution};
 use psscan::rig::Rig;
+use psscan::sets::{self, SolveJob};
 use psscan::solve::{self, PixelStatus, SolveInput, SolveResult};
-use psscan::synth::{expose_mosaic, FrameEncoding, Noise, Scene, SynthSpec};
+use psscan::synth::{self, expose_mosaic, FrameEncoding, Noise, Scene, SynthSpec};
 
 const W: usize = 256;
 const H: usize = 192;
@@ -47,7 +47,7 @@ struct Solved {
 }
 
 fn write_and_solve(rig: &Rig, spec: &SynthSpec, resolution: Resolution, dir: &Path) -> Solved {
-    pipeline::write_synthetic_set(rig, spec, dir, false, &Silent).unwrap();
+    synth::write_synthetic_set(rig, spec, dir, false, &Silent).unwrap();
     let set = CaptureSet::open(dir, None).unwrap();
     let options = DevelopOptions {
         resolution,
@@ -57,12 +57,12 @@ fn write_and_solve(rig: &Rig, spec: &SynthSpec, resolution: Resolution, dir: &Pa
     let input = SolveInput {
         frames: &loaded.frames,
         lights: solve::LightSource::Rig(&set.rig),
-        noise: pipeline::decoded_noise_model(&set.rig, &loaded.info),
+        noise: sets::decoded_noise_model(&set.rig, &loaded.info),
         exposure: 1.0,
         mask: None,
     };
     let result = solve::solve(&input, &SolveJob::default().options, &Silent).unwrap();
-    let (normal_truth, albedo_truth) = pipeline::truth_for(&set, &loaded.info).unwrap().unwrap();
+    let (normal_truth, albedo_truth) = sets::truth_for(&set, &loaded.info).unwrap().unwrap();
     Solved {
         result,
         normal_truth,
@@ -104,7 +104,7 @@ fn render_to_dng_to_decode_returns_the_rendered_values_within_quantisation() {
         &Silent,
     )
     .unwrap();
-    let pattern = Mosaic::parse_pattern(pipeline::SYNTH_CFA).unwrap();
+    let pattern = Mosaic::parse_pattern(synth::set::SYNTH_CFA).unwrap();
     let s = &rig.sensor;
     let full_scale = (s.white_level - s.black_level) as f32;
     for k in [0, 7] {
@@ -262,7 +262,7 @@ fn a_dng_set_at_half_resolution_measures_the_binned_surface() {
     let clean_spec = spec(FrameEncoding::Dng, None);
     let clean = write_and_solve(&rig, &clean_spec, Resolution::Half, &root.join("a"));
     let set = CaptureSet::open(&root.join("a"), None).unwrap();
-    let (full_normal, _) = pipeline::read_truth(&set).unwrap().unwrap();
+    let (full_normal, _) = sets::read_truth(&set).unwrap().unwrap();
     let lit = fully_lit_cells(&rig, &clean_spec, &full_normal);
     let lit_count = lit.iter().filter(|&&l| l).count();
     assert!(lit_count > lit.len() / 5, "{lit_count} fully lit cells");

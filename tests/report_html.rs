@@ -272,4 +272,39 @@ fn no_report_html_skips_the_page() {
     assert!(maps.join("report.json").is_file());
     assert!(!maps.join("report.html").exists());
     assert!(!maps.join("frames_preview.jpg").exists());
+    assert!(
+        !stage_names(&maps).contains(&"report page".to_string()),
+        "no page, no page row"
+    );
+}
+
+fn stage_names(maps: &Path) -> Vec<String> {
+    let report: Value =
+        serde_json::from_str(&std::fs::read_to_string(maps.join("report.json")).unwrap()).unwrap();
+    let stages = report["stages"].as_array().expect("a stage table");
+    stages
+        .iter()
+        .map(|s| s["stage"].as_str().unwrap().to_string())
+        .collect()
+}
+
+/// Building report.html is a row of the stage table of its own (it was outside every row), and
+/// the rows still add up to the total.
+#[test]
+fn the_page_build_has_its_own_stage_row() {
+    let tmp = tempfile::tempdir().unwrap();
+    let maps = demo(tmp.path(), &[]);
+    let names = stage_names(&maps);
+    assert!(names.contains(&"report page".to_string()), "{names:?}");
+    assert_eq!(names.last().map(String::as_str), Some("other"));
+    let report: Value =
+        serde_json::from_str(&std::fs::read_to_string(maps.join("report.json")).unwrap()).unwrap();
+    let sum: f64 = (report["stages"].as_array().unwrap().iter())
+        .map(|s| s["seconds"].as_f64().unwrap())
+        .sum();
+    let total = report["timings_s"]["total"].as_f64().unwrap();
+    assert!(
+        (sum - total).abs() <= 1e-9 * total.max(1.0),
+        "{sum} vs {total}"
+    );
 }

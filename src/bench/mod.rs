@@ -9,6 +9,7 @@
 mod floor;
 mod numpy;
 pub mod report;
+mod scenes;
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -17,18 +18,18 @@ use serde::Serialize;
 
 use crate::error::Result;
 use crate::eval::{self, angle_deg};
-use crate::plane::{Frames, SensorWindow};
+use crate::plane::Frames;
 use crate::progress::{Progress, Silent};
-use crate::raw::Levels;
 use crate::rig::Rig;
 use crate::solve::{
-    self, Estimator, KernelChoice, LightSource, Method, NoiseModel, PixelStatus, Precision,
-    SolveInput, SolveOptions, SolveResult,
+    self, Estimator, KernelChoice, LightSource, Method, PixelStatus, Precision, SolveInput,
+    SolveOptions, SolveResult,
 };
-use crate::synth::{expose, Noise, Scene, SceneOptions, Sheen, Textile};
+use crate::synth::{Scene, Sheen};
 
 pub use floor::{input_bytes, read_all};
 pub use numpy::available as numpy_available;
+pub use scenes::{bench_noise, render_scene, render_window, SceneKind};
 
 /// Above this size (megapixels) only the Lambertian scene is run, without the slow per-pixel
 /// variants (SVD, robust, adaptive, exact coefficients per pixel, predicted error), and the
@@ -64,43 +65,6 @@ pub struct BenchOptions {
     pub speed_only: bool,
 }
 
-/// The standard scenes.
-#[derive(Clone, Copy, Debug, Serialize, PartialEq, Eq)]
-#[serde(rename_all = "kebab-case")]
-pub enum SceneKind {
-    Lambertian,
-    Shadows,
-    Sheen,
-    ShadowsSheen,
-}
-
-impl SceneKind {
-    pub const ALL: [SceneKind; 4] = [
-        SceneKind::Lambertian,
-        SceneKind::Shadows,
-        SceneKind::Sheen,
-        SceneKind::ShadowsSheen,
-    ];
-
-    pub fn name(self) -> &'static str {
-        match self {
-            SceneKind::Lambertian => "lambertian",
-            SceneKind::Shadows => "shadows",
-            SceneKind::Sheen => "sheen",
-            SceneKind::ShadowsSheen => "shadows+sheen",
-        }
-    }
-
-    fn options(self) -> SceneOptions {
-        let shadows = matches!(self, SceneKind::Shadows | SceneKind::ShadowsSheen);
-        SceneOptions {
-            shadows,
-            shadow_fill: if shadows { 0.15 } else { 0.0 },
-            sheen: matches!(self, SceneKind::Sheen | SceneKind::ShadowsSheen).then(Sheen::default),
-        }
-    }
-}
-
 /// A solver configuration under test.
 #[derive(Clone, Debug)]
 pub struct Variant {
@@ -110,7 +74,8 @@ pub struct Variant {
     pub large: bool,
     /// Run only on these scenes (empty: every scene).
     pub scenes: &'static [SceneKind],
-    /// Timed once whatever the repeats (the sheen fit takes ~10 us per pixel).
+    /// Timed once whatever the repeats (the sheen fit is the slowest per-pixel fit; its time
+    /// per scene is in the bench table, docs/bench/bench.md).
     pub single_run: bool,
     /// Each timed solve writes into the previous solve's outputs (`solve_reusing`, as a batch
     /// of same-size captures can): no fresh output pages to fault in and zero. One untimed
@@ -304,64 +269,6 @@ pub struct BenchResult {
     pub seconds: f64,
 }
 
-/// Renders `kind` at `mp` megapixels over the whole sensor field with sensor noise, as decoded
-/// frames (with saturation masks), and its ground truth.
-pub fn render_scene<'r>(
-    rig: &'r Rig,
-    kind: SceneKind,
-    mp: f64,
-    progress: &dyn Progress,
-) -> Result<(Scene<'r>, Frames)> {
-    let (sw, sh) = (rig.camera.width as usize, rig.camera.height as usize);
-    let scale = (mp * 1e6 / (sw * sh) as f64).sqrt().min(1.0);
-    let (w, h) = (
-        ((sw as f64 * scale).round() as usize).max(1),
-        ((sh as f64 * scale).round() as usize).max(1),
-    );
-    render_window(rig, kind, (w, h), sw as f64 / w as f64, progress)
-}
-
-/// Renders `kind` on a `w x h` window centred on the sensor, every `step` sensor pixels, with
-/// sensor noise, as decoded frames (with saturation masks), and its ground truth.
-pub fn render_window<'r>(
-    rig: &'r Rig,
-    kind: SceneKind,
-    (w, h): (usize, usize),
-    step: f64,
-    progress: &dyn Progress,
-) -> Result<(Scene<'r>, Frames)> {
-    let (sw, sh) = (rig.camera.width as usize, rig.camera.height as usize);
-    let window = SensorWindow::centred(sw, sh, w, h, step);
-    let scene = Scene::build(
-        rig,
-        Textile::default(),
-        w,
-        h,
-        window,
-        kind.options(),
-        progress,
-    )?;
-    let levels = Levels::from_sensor(&rig.sensor);
-    progress.begin("render", rig.leds.len() as u64);
-    let lights = (0..rig.leds.len())
-        .map(|k| {
-            let linear = scene.render_light(k, 1.0);
-            let frame = expose(&linear, &rig.sensor, Noise::Seeded(7), k as u64 + 1)
-                .to_light_frame(&levels);
-            progress.advance(1);
-            frame
-        })
-        .collect();
-    progress.end();
-    let frames = Frames {
-        width: w,
-        height: h,
-        window,
-        lights,
-    };
-    Ok((scene, frames))
-}
-
 fn solve_once(
     rig: &Rig,
     frames: &Frames,
@@ -371,7 +278,7 @@ fn solve_once(
     let input = SolveInput {
         frames,
         lights: LightSource::Rig(rig),
-        noise: crate::pipeline::noise_model(rig, &Levels::from_sensor(&rig.sensor)),
+        noise: bench_noise(rig),
         exposure: 1.0,
         mask: None,
     };
@@ -415,7 +322,7 @@ pub fn run(options: &BenchOptions, progress: &dyn Progress) -> Result<BenchResul
     for &mp in &options.sizes_mp {
         // Large scenes are for the speed targets and the estimators' done-when: the
         // Lambertian scene and shadows + sheen with a few variants (rendering and solving
-        // every scene with every variant at 16 MP would take most of an hour on two cores).
+        // every scene with every variant at 16 MP costs many times the rest of the run).
         let kinds: &[SceneKind] = if options.speed_only {
             &[SceneKind::Lambertian]
         } else if mp > LARGE_MP {
@@ -596,11 +503,6 @@ fn cpu_name() -> String {
                 .map(|s| s.trim().to_string())
         })
         .unwrap_or_else(|| "unknown".into())
-}
-
-/// The noise model the benchmark's frames were exposed with.
-pub fn bench_noise(rig: &Rig) -> NoiseModel {
-    crate::pipeline::noise_model(rig, &Levels::from_sensor(&rig.sensor))
 }
 
 #[cfg(test)]

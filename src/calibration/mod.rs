@@ -7,6 +7,7 @@ pub mod bundle;
 pub mod camera;
 pub mod capture;
 pub mod chartfind;
+pub mod choice;
 pub mod cv;
 pub mod files;
 pub mod graychart;
@@ -15,3 +16,5 @@ pub mod steps;
 pub mod table;
 pub mod whitesheet;
 pub mod wizard;
+
+pub use choice::CalibrationChoice;

@@ -478,7 +478,7 @@ fn lit_list(lit: &[usize]) -> String {
 pub fn demo_firmware_sim(
     out: &Path,
     scene: &SceneArgs,
-    job: &psscan::pipeline::SolveJob,
+    job: &psscan::sets::SolveJob,
     json: bool,
     bars: &Bars,
 ) -> anyhow::Result<()> {

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 use psscan::eval::{self, EvalOptions};
-use psscan::offline;
+use psscan::sets;
 use psscan::solve::{Estimator, SolveOptions};
 
 use super::print_json;
@@ -46,7 +46,7 @@ pub fn eval(args: &EvalArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         estimators: args.estimator.clone(),
         solve: SolveOptions::default(),
     };
-    let report = offline::evaluate_sets(&args.sets, &options, bars)?;
+    let report = sets::evaluate_sets(&args.sets, &options, bars)?;
     if let Some(out) = &args.out {
         eval::table::write(&report, out)?;
     }

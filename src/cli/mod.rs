@@ -19,17 +19,17 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
+use psscan::calibration::CalibrationChoice;
 use psscan::maps::{MapOptions, NormalConvention, PngCompression};
-use psscan::offline::{self, BatchOptions, BatchSummary};
-use psscan::pipeline::{self, CalibrationChoice, DemoSummary, RegionJob, SolveJob};
 use psscan::raw::{DevelopOptions, Resolution};
-use psscan::region::{Background, Roi};
+use psscan::region::{Background, RegionJob, Roi};
 use psscan::rig::Rig;
+use psscan::sets::{self, BatchOptions, BatchSummary, SolveJob};
 use psscan::solve::{
     Estimator, KernelChoice, LightModel, Method, Precision, RobustOptions, SheenModel,
     SolveOptions, DEFAULT_TILE_TOLERANCE_DEG,
 };
-use psscan::synth::{FrameEncoding, Sheen, SynthSpec};
+use psscan::synth::{self, DemoSummary, FrameEncoding, Sheen, SynthSpec};
 
 use outcome::{
     exit_code, is_closed_pipe_message, panic_text, quiet_closed_pipe_panics, usage_error,
@@ -473,7 +473,7 @@ fn demo(args: &DemoArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         return capture::demo_firmware_sim(&args.out, &args.scene, &args.solve.job()?, json, bars);
     }
     let spec = args.scene.spec();
-    let summary = pipeline::run_demo(&args.out, &spec, &args.solve.job()?, bars)?;
+    let summary = synth::run_demo(&args.out, &spec, &args.solve.job()?, bars)?;
     if json {
         print_json(&summary);
     } else {
@@ -523,7 +523,7 @@ fn synth(args: &SynthArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
         .chain(&args.calibration)
         .map(|p| p.as_path())
         .collect();
-    let outcome = pipeline::write_synthetic_set_from(
+    let outcome = synth::write_synthetic_set_from(
         &rig,
         &spec,
         &args.out,
@@ -561,7 +561,7 @@ fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     };
     job.allow_calibration_mismatch = args.allow_calibration_mismatch;
     if let [set] = args.sets.as_slice() {
-        let report = offline::solve_set(set, &args.out, &job, bars)?;
+        let report = sets::solve_set(set, &args.out, &job, bars)?;
         if json {
             print_json(&report);
         } else {
@@ -575,7 +575,7 @@ fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let options = BatchOptions {
         parallel_sets: args.parallel_sets,
     };
-    let summary = offline::solve_sets(&args.sets, &args.out, &job, options, bars);
+    let summary = sets::solve_sets(&args.sets, &args.out, &job, options, bars);
     if json {
         print_json(&summary);
     } else {

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Serialize, Serializer};
 
-use super::{MapOptions, WrittenMaps};
+use super::{MapOptions, NormalConvention, WrittenMaps};
 use crate::error::Result;
 use crate::eval::{Stats, TruthComparison};
 use crate::fsutil::write_atomic;
@@ -80,8 +80,6 @@ pub struct Report {
     /// `--rig`, or `--allow-calibration-mismatch` with another bundle).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub calibration_cited_by_set: Option<crate::rig::CalibrationRef>,
-    /// Orientation of the normal maps written.
-    pub normal_convention: super::NormalConvention,
     /// The lights in frame order, for the report page's view of the rig.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub lights: Vec<LightRecord>,
@@ -296,7 +294,6 @@ impl Report {
             normal_truth: None,
             calibration: None,
             calibration_cited_by_set: None,
-            normal_convention: Default::default(),
             lights: Vec::new(),
             camera: None,
             normal_error_histogram: None,
@@ -354,4 +351,16 @@ impl Report {
     pub fn write(&self, path: &Path) -> Result<()> {
         write_atomic(path, self.to_json().as_bytes())
     }
+}
+
+/// The orientation of the normal maps a report's solve wrote: `maps.normal_convention`
+/// (reports written before it was recorded only there also carried a top-level copy, read as
+/// a fallback); OpenGL when neither is present.
+pub fn normal_convention_of(report: &serde_json::Value) -> NormalConvention {
+    let recorded = report
+        .pointer("/maps/normal_convention")
+        .or_else(|| report.get("normal_convention"));
+    recorded
+        .and_then(|v| serde_json::from_value(v.clone()).ok())
+        .unwrap_or_default()
 }

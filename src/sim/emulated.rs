@@ -16,10 +16,11 @@ use crate::capture::lights::{FirmwareInfo, SerialLights, SerialOptions, SharedLi
 use crate::capture::{run_capture, CaptureOptions, CaptureReport, Interrupt, SyntheticInfo};
 use crate::error::Result;
 use crate::maps::{self, report::Mean, WrittenMaps};
-use crate::pipeline::{self, DemoPaths, SolveJob, SPEC_FILE, TRUTH_DIR};
 use crate::progress::Progress;
 use crate::rig::Rig;
-use crate::synth::{Scene, SynthSpec};
+use crate::sets::{self, SolveJob};
+use crate::synth::set::{write_truth, SPEC_FILE, TRUTH_DIR};
+use crate::synth::{demo, DemoPaths, Scene, SynthSpec};
 
 /// A running emulator with the serial link open on its pty.
 pub struct EmulatedController {
@@ -72,7 +73,7 @@ pub fn lit_source(
 /// or already claimed by this run for a new set (see `fsutil::claim_dir`).
 pub fn write_scene_truth(scene: &Scene, spec: &SynthSpec, dir: &Path) -> Result<SyntheticInfo> {
     crate::fsutil::claim_dir(dir, false, &[], &[])?;
-    pipeline::write_truth(scene, spec, dir)?;
+    write_truth(scene, spec, dir)?;
     Ok(SyntheticInfo {
         truth_dir: TRUTH_DIR.into(),
         spec_file: SPEC_FILE.into(),
@@ -161,7 +162,7 @@ pub fn run_firmware_sim_demo(
         out,
         true,
         &[],
-        &[pipeline::DEMO_CAPTURE, pipeline::DEMO_MAPS, "firmware-sim/"],
+        &[demo::DEMO_CAPTURE, demo::DEMO_MAPS, "firmware-sim/"],
     )?;
     crate::fsutil::claim_dir(&sim_dir, true, &[], &["pins.log"])?;
     let pin_log_path = sim_dir.join("pins.log");
@@ -210,7 +211,7 @@ pub fn run_firmware_sim_demo(
         force: true,
         ..job.clone()
     };
-    let report = pipeline::solve_capture_set(&capture_dir, &maps_dir, &job, progress)?;
+    let report = sets::solve_set(&capture_dir, &maps_dir, &job, progress)?;
     let truth = report
         .truth
         .clone()

@@ -3,16 +3,24 @@
 //! inputs. Production paths use it only through `psscan demo` and `psscan synth`.
 
 pub mod brdf;
+pub mod demo;
 mod render;
 pub mod sensor;
+pub mod set;
+pub mod source;
 pub mod targets;
 pub mod textile;
 
 use serde::{Deserialize, Serialize};
 
 pub use brdf::Sheen;
+pub use demo::{run_demo, DemoPaths, DemoSummary};
 pub use render::{GroundTruth, Scene, SceneOptions};
 pub use sensor::{expose, expose_mosaic, Noise};
+pub use set::{
+    write_synthetic_set, write_synthetic_set_from, write_synthetic_set_with, SynthOutcome,
+};
+pub use source::SceneSource;
 pub use textile::{Textile, Weave};
 
 use crate::plane::SensorWindow;

@@ -76,10 +76,7 @@ pub fn load(dir: &Path) -> Result<SolvedMaps> {
     let text = std::fs::read_to_string(&report_path).map_err(|e| Error::io(&report_path, e))?;
     let report: Value = serde_json::from_str(&text)
         .map_err(|e| Error::config(&report_path, "", format!("not a solve report: {e}")))?;
-    let convention: NormalConvention = report
-        .get("normal_convention")
-        .and_then(|v| serde_json::from_value(v.clone()).ok())
-        .unwrap_or_default();
+    let convention: NormalConvention = crate::maps::report::normal_convention_of(&report);
     let pixel_mm = report
         .get("pixel_size_mm")
         .and_then(Value::as_f64)

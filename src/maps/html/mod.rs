@@ -78,13 +78,10 @@ fn read_report(dir: &Path) -> std::result::Result<Value, String> {
 }
 
 fn normal_convention(report: Option<&Value>) -> NormalConvention {
-    match report
-        .and_then(|r| r.get("normal_convention"))
-        .and_then(Value::as_str)
-    {
-        Some("directx") => NormalConvention::DirectX,
-        _ => NormalConvention::OpenGl,
-    }
+    report.map_or(
+        NormalConvention::OpenGl,
+        crate::maps::report::normal_convention_of,
+    )
 }
 
 /// The relight textures of the solve in `dir` (what the page's canvas samples).

@@ -1,0 +1,300 @@
+//! The one way a set is solved: stage the output folder, open and decode the set, select the
+//! region, solve, write the maps (reading the truth meanwhile), compare with the truth, write
+//! `report.json` and `report.html`, and commit the folder.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use super::{open, SetSource, SolveJob, Truth};
+use crate::error::Result;
+use crate::eval;
+use crate::fsutil::{check_outside_inputs, StagedDir};
+use crate::maps::report::Histogram;
+use crate::maps::{self, MapOptions, Report, WrittenMaps};
+use crate::plane::{Mask, SensorWindow};
+use crate::progress::Progress;
+use crate::raw::DecodeInfo;
+use crate::region::{region_truth, select_region, RegionInfo};
+use crate::solve::{self, SolveInput, SolveResult};
+use crate::timing::StageClock;
+
+/// The stage of reading a set's ground truth (beside the maps' writing).
+pub const TRUTH_READ_STAGE: &str = "read truth";
+
+/// The stage of building `report.html`.
+pub const REPORT_PAGE_STAGE: &str = "report page";
+
+/// Where the set to solve comes from.
+enum SetRef<'a> {
+    /// A folder of either kind, opened inside the solve's clock.
+    Folder(&'a Path),
+    /// A source already opened (a synthetic scene in memory).
+    Opened(&'a dyn SetSource),
+}
+
+/// Solves the set in `dir` (a psscan capture set or a DiLiGenT-layout folder) and writes maps,
+/// `report.json` and, when asked, `report.html` into `out`. The output is built beside `out`
+/// and renamed into place when complete.
+pub fn solve_set(
+    dir: &Path,
+    out: &Path,
+    job: &SolveJob,
+    progress: &dyn Progress,
+) -> Result<Report> {
+    solve_set_reusing(dir, out, job, progress, &mut None)
+}
+
+/// [`solve_set`], solving into `buffers` (a previous set's result, when it has the same size)
+/// and leaving this set's result there: a batch of same-size sets then pays for fresh output
+/// memory once, not per set (see `solve::solve_reusing`).
+pub fn solve_set_reusing(
+    dir: &Path,
+    out: &Path,
+    job: &SolveJob,
+    progress: &dyn Progress,
+    buffers: &mut Option<SolveResult>,
+) -> Result<Report> {
+    run(SetRef::Folder(dir), out, job, progress, buffers)
+}
+
+/// [`solve_set`] for a source already opened (its location is not read: only `job.inputs`
+/// are the run's other inputs).
+pub fn solve_source(
+    source: &dyn SetSource,
+    out: &Path,
+    job: &SolveJob,
+    progress: &dyn Progress,
+) -> Result<Report> {
+    run(SetRef::Opened(source), out, job, progress, &mut None)
+}
+
+/// The figures of a solve against its set's ground truth.
+struct TruthFigures {
+    comparison: TruthComparisonKind,
+    histogram: Histogram,
+}
+
+enum TruthComparisonKind {
+    Surface(eval::TruthComparison),
+    Normals(eval::MaskedNormalComparison),
+}
+
+/// What the set's sequence produced before the report is assembled.
+struct Solved {
+    result: SolveResult,
+    decode: DecodeInfo,
+    window: SensorWindow,
+    region: Option<RegionInfo>,
+    mask: Option<Mask>,
+    maps: MapOptions,
+    outputs: WrittenMaps,
+    truth: Option<Truth>,
+    decode_s: f64,
+    write_s: f64,
+}
+
+fn run(
+    set: SetRef,
+    out: &Path,
+    job: &SolveJob,
+    progress: &dyn Progress,
+    buffers: &mut Option<SolveResult>,
+) -> Result<Report> {
+    let inputs = match set {
+        SetRef::Folder(dir) => job.input_paths(dir),
+        SetRef::Opened(_) => job.inputs.iter().map(PathBuf::as_path).collect(),
+    };
+    let mut clock = StageClock::start();
+    let stage = StagedDir::create(out, job.force, &inputs)?;
+    let opened;
+    let source: &dyn SetSource = match set {
+        SetRef::Opened(source) => source,
+        SetRef::Folder(dir) => {
+            opened = clock.time("open set", || -> Result<_> {
+                let source = open(dir, job)?;
+                let others = source.other_inputs();
+                check_outside_inputs(
+                    out,
+                    &others.iter().map(PathBuf::as_path).collect::<Vec<_>>(),
+                )?;
+                Ok(source)
+            })?;
+            &*opened
+        }
+    };
+    let solved = solve_and_write(source, stage.path(), job, progress, buffers, &mut clock)?;
+
+    let report_start = clock.elapsed();
+    let truth = match &solved.truth {
+        Some(truth) => Some(clock.time("compare with truth", || {
+            compare(&solved.result, truth, solved.mask.as_ref(), job)
+        })?),
+        None => None,
+    };
+    let mut report = clock.time("report", || {
+        let outputs = relocate(solved.outputs.clone(), out);
+        let location = source.location();
+        let mut report = Report::new(
+            location,
+            &source.rig_name(),
+            &solved.result,
+            &job.options,
+            outputs,
+        );
+        report.maps = solved.maps.clone();
+        source.describe(&mut report, &solved.window);
+        if let Some(figures) = truth {
+            match figures.comparison {
+                TruthComparisonKind::Surface(c) => report.set_truth(c),
+                TruthComparisonKind::Normals(c) => report.normal_truth = Some(c),
+            }
+            report.normal_error_histogram = Some(figures.histogram);
+        }
+        if let Some(region) = solved.region.clone() {
+            report.set_region(region);
+        }
+        report
+    });
+    report.decode = Some(solved.decode.clone());
+    let report_s = clock.elapsed() - report_start;
+    report.timings_s = BTreeMap::from([
+        ("decode".to_string(), solved.decode_s),
+        ("solve".to_string(), clock.seconds("solve")),
+        ("write".to_string(), solved.write_s),
+        ("report".to_string(), report_s),
+    ]);
+    report.set_stages(&clock);
+    let report_path = stage.path().join(maps::REPORT_FILE);
+    report.write(&report_path)?;
+    if job.maps.report_html {
+        // The page embeds the report as written above; its own build time is added to the
+        // report afterwards (a page cannot hold the time it took to build itself).
+        clock.time(REPORT_PAGE_STAGE, || {
+            maps::html::write_report_page(stage.path())
+        })?;
+        report.set_stages(&clock);
+        report.write(&report_path)?;
+    }
+    stage.commit(job.force, &inputs)?;
+    *buffers = Some(solved.result);
+    Ok(report)
+}
+
+/// Decodes, selects the region, solves and writes the maps into `dir` (the staged folder),
+/// reading the set's ground truth while the maps are written.
+fn solve_and_write(
+    source: &dyn SetSource,
+    dir: &Path,
+    job: &SolveJob,
+    progress: &dyn Progress,
+    buffers: &mut Option<SolveResult>,
+    clock: &mut StageClock,
+) -> Result<Solved> {
+    let (frames, decode) = source.load(&job.develop, progress, clock)?;
+    let decode_s = clock.elapsed();
+    let (width, height) = (frames.width, frames.height);
+    let lights = source.lights();
+    let noise = clock.time("noise model", || source.noise(&decode));
+    let own_mask = source.mask(&frames)?;
+    let (frames, region_mask, noise, region_info) = clock.time("region", || {
+        select_region(frames, &lights, noise, &job.region)
+    })?;
+    let mask = region_mask.or(own_mask);
+    let input = SolveInput {
+        frames: &frames,
+        lights,
+        noise,
+        exposure: source.exposure(),
+        mask: mask.as_ref(),
+    };
+    let result = clock.time("solve", || {
+        solve::solve_reusing(&input, &job.options, progress, buffers.take())
+    })?;
+    if job.maps.report_html {
+        clock.time("frame previews", || {
+            maps::html::write_frame_strip(&frames, dir)
+        })?;
+    }
+    let window = frames.window;
+    clock.time("free frames", || drop(frames));
+
+    let map_options = MapOptions {
+        display_matrix: job.maps.display_matrix.or(decode.camera_to_srgb),
+        ..job.maps.clone()
+    };
+    // The ground truth is read while the maps are written: reading EXRs and writing them
+    // share the cores better than either alone.
+    let write_start = clock.elapsed();
+    let mut stages = maps::MAP_STAGES.to_vec();
+    stages.push(TRUTH_READ_STAGE);
+    let (outputs, truth) = clock.time_shared(&stages, "write maps", |busy| {
+        rayon::join(
+            || maps::write_maps_timed(&result, dir, &map_options, busy),
+            || busy.time(TRUTH_READ_STAGE, || source.truth(width, height, &decode)),
+        )
+    });
+    let outputs = outputs?;
+    let truth = truth?;
+    let write_s = clock.elapsed() - write_start;
+    Ok(Solved {
+        result,
+        decode,
+        window,
+        region: (!job.region.is_full()).then_some(region_info),
+        mask,
+        maps: map_options,
+        outputs,
+        truth,
+        decode_s,
+        write_s,
+    })
+}
+
+/// The solve against the set's ground truth: surface truth cropped and binned as the frames
+/// were, over every pixel; normal truth over the solve's mask.
+fn compare(
+    result: &SolveResult,
+    truth: &Truth,
+    mask: Option<&Mask>,
+    job: &SolveJob,
+) -> Result<TruthFigures> {
+    match truth {
+        Truth::Surface { normal, albedo } => {
+            let (normal, albedo) = region_truth((normal.clone(), albedo.clone()), &job.region)?;
+            let errors: Vec<f64> = eval::normal_errors_deg(result, &normal)
+                .into_iter()
+                .flatten()
+                .collect();
+            Ok(TruthFigures {
+                comparison: TruthComparisonKind::Surface(eval::compare(result, &normal, &albedo)),
+                histogram: Histogram::of_errors(&errors),
+            })
+        }
+        Truth::Normals(normal) => {
+            let everywhere = Mask::new(result.width, result.height, true);
+            let mask = mask.unwrap_or(&everywhere);
+            let errors: Vec<f64> = (eval::normal_errors_deg(result, normal).into_iter())
+                .zip(&mask.data)
+                .filter_map(|(e, &inside)| e.filter(|_| inside))
+                .collect();
+            Ok(TruthFigures {
+                comparison: TruthComparisonKind::Normals(eval::compare_normals_over_mask(
+                    result, normal, mask,
+                )),
+                histogram: Histogram::of_errors(&errors),
+            })
+        }
+    }
+}
+
+/// The written maps' paths under their final folder name.
+pub fn relocate(outputs: WrittenMaps, out: &Path) -> WrittenMaps {
+    let moved = |p: PathBuf| out.join(p.file_name().expect("map files have names"));
+    WrittenMaps {
+        normal_png: outputs.normal_png.map(moved),
+        normal_exr: outputs.normal_exr.map(moved),
+        albedo_png: outputs.albedo_png.map(moved),
+        albedo_exr: outputs.albedo_exr.map(moved),
+        confidence_exr: moved(outputs.confidence_exr),
+    }
+}
