@@ -35,8 +35,7 @@ pub const RIG_FILE: &str = "rig.toml";
 pub const INDEX_FILE: &str = "bundle.toml";
 pub const GAINS_FILE: &str = "light_gains.toml";
 
-// moved: issue 15, the lead removes this at merge
-pub use crate::rig::CalibrationRef;
+use crate::rig::CalibrationRef;
 
 /// `light_gains.toml`: one gain grid per LED.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

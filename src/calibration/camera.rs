@@ -11,8 +11,7 @@ use super::cv::{self, PatternSize};
 use crate::error::{Error, Result};
 use crate::plane::{GrayImage, SensorWindow};
 use crate::progress::Progress;
-// moved: issue 15, the lead removes this at merge
-pub use crate::rig::Board;
+use crate::rig::Board;
 
 /// A view whose RMS reprojection error is more than this many times the median of the views
 /// is rejected: with every view seeing the same board through the same lens, errors differ

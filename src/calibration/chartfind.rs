@@ -8,7 +8,7 @@
 //! background scores worse. Coarse search on a 4-pixel lattice, then every pixel around the
 //! best, on the CFA cells (2x2 samples) summed over all lights.
 
-use super::graychart::{ChartDescription, ChartRect};
+use crate::rig::{ChartDescription, ChartRect};
 use crate::error::{Error, Result};
 use crate::raw::Mosaic;
 

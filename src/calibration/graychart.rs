@@ -12,8 +12,7 @@ use crate::plane::SensorWindow;
 use crate::raw::Mosaic;
 use crate::rig::Rig;
 
-// moved: issue 15, the lead removes this at merge
-pub use crate::rig::{ChartDescription, ChartRect};
+use crate::rig::{ChartDescription, ChartRect};
 
 /// One patch under one light: mean linear value per channel (1.0 = white level) of its CFA
 /// samples, and whether any sample clipped.

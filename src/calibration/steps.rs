@@ -9,9 +9,11 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::bundle::{self, BundleIndex, Calibration, Parts};
-use super::camera::{Board, CameraCalibration};
+use super::camera::CameraCalibration;
+use crate::rig::Board;
 use super::files;
-use super::graychart::{self, ChartDescription, ChartRect, ChartReport, Shading};
+use super::graychart::{self, ChartReport, Shading};
+use crate::rig::{ChartDescription, ChartRect};
 use super::lights::{self, LightFit};
 use super::table::{self, TablePose};
 use super::whitesheet::{self, SheetLight};

@@ -7,7 +7,8 @@
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::camera::{Board, Intrinsics};
+use super::camera::Intrinsics;
+use crate::rig::Board;
 use super::cv;
 use crate::error::{Error, Result};
 use crate::plane::{GrayImage, SensorWindow};

@@ -9,8 +9,10 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::bundle::{self, Calibration};
-use super::camera::{self, Board, CameraOptions, DetectedView};
-use super::graychart::{self, ChartDescription, ChartRect, ChartReport, Shading};
+use super::camera::{self, CameraOptions, DetectedView};
+use crate::rig::Board;
+use super::graychart::{self, ChartReport, Shading};
+use crate::rig::{ChartDescription, ChartRect};
 use super::whitesheet::{self, FLATNESS_TOLERANCE_DEG};
 use super::{lights, table};
 use crate::error::{Error, Result};

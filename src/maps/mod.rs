@@ -7,7 +7,6 @@ pub mod derive;
 pub mod encode;
 pub mod html;
 pub mod report;
-pub mod write;
 
 use std::path::{Path, PathBuf};
 

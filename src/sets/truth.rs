@@ -4,7 +4,6 @@
 
 use crate::capture::CaptureSet;
 use crate::error::{Error, Result};
-use crate::maps;
 use crate::plane::Plane;
 use crate::raw::{DecodeInfo, Mosaic, Resolution};
 use crate::solve::LUMINANCE_WEIGHTS;
@@ -78,7 +77,7 @@ pub fn read_truth(set: &CaptureSet) -> Result<Option<([Plane; 3], [Plane; 3])>> 
     };
     let dir = set.dir.join(&info.truth_dir);
     let read3 = |name: &str| -> Result<[Plane; 3]> {
-        let mut planes = maps::write::read_exr(&dir.join(name), &["R", "G", "B"])?.into_iter();
+        let mut planes = crate::io::read_exr(&dir.join(name), &["R", "G", "B"])?.into_iter();
         Ok(std::array::from_fn(|_| {
             planes.next().expect("three channels")
         }))

@@ -17,7 +17,6 @@ use crate::capture::{
 };
 use crate::error::{Error, Result};
 use crate::fsutil::{create_dir_all, record_owned, write_atomic, StagedDir};
-use crate::maps;
 use crate::plane::{Plane, RgbPlanes, SensorWindow};
 use crate::progress::{Progress, Silent};
 use crate::raw::{encode_dng, encode_png16, DngStorage, Levels, Mosaic, RawMeta};
@@ -246,7 +245,7 @@ pub fn write_truth(scene: &Scene, spec: &SynthSpec, dir: &Path) -> Result<()> {
         ["normal.exr", "albedo.exr", "height.exr", "spec.toml"].map(|f| format!("{TRUTH_DIR}/{f}")),
     )?;
     let t = &scene.truth;
-    maps::write::write_exr(
+    crate::io::write_exr(
         &truth_dir.join("normal.exr"),
         &[
             ("R", &t.normal[0]),
@@ -254,7 +253,7 @@ pub fn write_truth(scene: &Scene, spec: &SynthSpec, dir: &Path) -> Result<()> {
             ("B", &t.normal[2]),
         ],
     )?;
-    maps::write::write_exr(
+    crate::io::write_exr(
         &truth_dir.join("albedo.exr"),
         &[
             ("R", &t.albedo[0]),
@@ -262,7 +261,7 @@ pub fn write_truth(scene: &Scene, spec: &SynthSpec, dir: &Path) -> Result<()> {
             ("B", &t.albedo[2]),
         ],
     )?;
-    maps::write::write_exr(&truth_dir.join("height.exr"), &[("Y", &t.height)])?;
+    crate::io::write_exr(&truth_dir.join("height.exr"), &[("Y", &t.height)])?;
     let text = toml::to_string_pretty(spec).expect("a spec always serialises");
     write_atomic(&dir.join(SPEC_FILE), text.as_bytes())
 }
