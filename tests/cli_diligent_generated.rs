@@ -63,9 +63,15 @@ fn mat_v5(name: &str, dims: [usize; 3], column_major: &[f64]) -> Vec<u8> {
     const MI_MATRIX: u32 = 14;
     const MX_DOUBLE_CLASS: u32 = 6;
     let mut body = Vec::new();
-    let flags: Vec<u8> = [MX_DOUBLE_CLASS, 0].iter().flat_map(|v| v.to_le_bytes()).collect();
+    let flags: Vec<u8> = [MX_DOUBLE_CLASS, 0]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
     element(&mut body, MI_UINT32, &flags);
-    let dims: Vec<u8> = dims.iter().flat_map(|&d| (d as i32).to_le_bytes()).collect();
+    let dims: Vec<u8> = dims
+        .iter()
+        .flat_map(|&d| (d as i32).to_le_bytes())
+        .collect();
     element(&mut body, MI_INT32, &dims);
     element(&mut body, MI_INT8, name.as_bytes());
     let values: Vec<u8> = column_major.iter().flat_map(|v| v.to_le_bytes()).collect();
@@ -87,7 +93,8 @@ fn write_sphere_set(dir: &Path) -> usize {
         (String::new(), String::new(), String::new());
     for (k, (d, e)) in lights.iter().enumerate() {
         let l = Vector3::from(*d);
-        let mut img = image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::new(SIZE as u32, SIZE as u32);
+        let mut img =
+            image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::new(SIZE as u32, SIZE as u32);
         for (x, y, px) in img.enumerate_pixels_mut() {
             if let Some(n) = normal_at(x as usize, y as usize) {
                 let shade = n.dot(&l);
@@ -177,14 +184,26 @@ fn a_generated_diligent_sphere_solves_and_evaluates_within_the_quantisation_boun
 
     let out = tmp.path().join("out");
     let (set_s, out_s) = (set.to_str().unwrap(), out.to_str().unwrap());
-    psscan(&["-q", "solve", set_s, "--out", out_s, "--estimator", "ls", "--json"]);
+    psscan(&[
+        "-q",
+        "solve",
+        set_s,
+        "--out",
+        out_s,
+        "--estimator",
+        "ls",
+        "--json",
+    ]);
     let report: Value =
         serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
     let truth = &report["normal_truth"];
     assert_eq!(truth["mask_pixels"], mask_pixels);
     assert_eq!(truth["solved"], mask_pixels);
     let max = truth["normal_error_deg"]["max"].as_f64().unwrap();
-    assert!(max <= bound, "solve: worst normal error {max} deg, bound {bound}");
+    assert!(
+        max <= bound,
+        "solve: worst normal error {max} deg, bound {bound}"
+    );
 
     let eval = psscan(&["-q", "eval", set_s, "--estimator", "ls", "--json"]);
     let rows = eval["rows"].as_array().unwrap();
@@ -196,7 +215,10 @@ fn a_generated_diligent_sphere_solves_and_evaluates_within_the_quantisation_boun
     assert_eq!(ls["mask_pixels"], mask_pixels);
     assert_eq!(ls["solved"], mask_pixels);
     let max = ls["error_deg"]["max"].as_f64().unwrap();
-    assert!(max <= bound, "eval: worst normal error {max} deg, bound {bound}");
+    assert!(
+        max <= bound,
+        "eval: worst normal error {max} deg, bound {bound}"
+    );
 }
 
 #[test]

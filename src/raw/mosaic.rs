@@ -13,7 +13,9 @@
 //!   own sample, and its two missing channels are that sample times the pixel's colour ratios,
 //!   which come from the whole stack (they are the same under every light). Each pixel's
 //!   shading, which is what photometric stereo reads, is therefore its own, never its
-//!   neighbours'. A plain [`bilinear`] demosaic is the building block for the colour ratios.
+//!   neighbours'. With the lights' shading vectors the ratios come from every site's fitted
+//!   albedo, interpolated along the pixel's own material (`shading`, `hue`); without them from
+//!   a plain [`bilinear`] demosaic of the stack's sum.
 //!
 //! Values are linear: `(sample - black[site]) / (white - black[site])`, 1.0 at the white level.
 //! A pixel is saturated when a CFA sample whose value it carries is at or near the white level
@@ -86,8 +88,10 @@ impl Resolution {
             Resolution::Half => "2x2 CFA binning (R, mean of the two G, B of each cell)",
             Resolution::Full => {
                 "shading-preserving demosaic: each pixel's own CFA sample, the missing channels \
-                 scaled from it by the pixel's colour ratios from the whole stack (bilinear \
-                 demosaic of the white-balanced sum of all frames)"
+                 scaled from it by the pixel's colour ratios from the whole stack (each CFA \
+                 site's albedo fitted under the rig's lights, interpolated along the pixel's own \
+                 material; without the lights, a bilinear demosaic of the white-balanced sum of \
+                 all frames)"
             }
         }
     }
