@@ -76,7 +76,7 @@ fn mat_v5(name: &str, dims: [usize; 3], column_major: &[f64]) -> Vec<u8> {
     element(&mut body, MI_INT8, name.as_bytes());
     let values: Vec<u8> = column_major.iter().flat_map(|v| v.to_le_bytes()).collect();
     element(&mut body, MI_DOUBLE, &values);
-    let mut file = format!("MATLAB 5.0 MAT-file, written by psscan's tests").into_bytes();
+    let mut file = b"MATLAB 5.0 MAT-file, written by psscan's tests".to_vec();
     file.resize(116, b' ');
     file.extend_from_slice(&[0u8; 8]); // no subsystem data
     file.extend_from_slice(&0x0100u16.to_le_bytes());

@@ -158,9 +158,8 @@ pub fn site_albedos(
                 .iter()
                 .zip(colours)
                 .zip(&vectors)
-                .filter_map(|((f, g), s)| {
-                    (!f.saturated[i]).then(|| (s, f.values[i] as f64 / g[own] as f64))
-                });
+                .filter(|((f, _), _)| !f.saturated[i])
+                .map(|((f, g), s)| (s, f.values[i] as f64 / g[own] as f64));
             *site = match fit_scaled_normal(samples) {
                 Some(b) => {
                     let a = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
@@ -216,7 +215,9 @@ fn fit_scaled_normal<'a>(samples: impl Iterator<Item = (&'a [f64; 3], f64)>) -> 
     let det = m[0][0] * cof(0, 0) + m[0][1] * cof(0, 1) + m[0][2] * cof(0, 2);
     let trace = m[0][0] + m[1][1] + m[2][2];
     // Shading vectors nearly in a plane leave b's component across it to the noise.
-    if !(det > 1e-9 * trace.powi(3)) {
+    // (A NaN determinant fails the test too.)
+    let determined = det > 1e-9 * trace.powi(3);
+    if !determined {
         return None;
     }
     // M is symmetric: its inverse is the cofactor matrix over the determinant.
