@@ -107,7 +107,19 @@ fn main() {
                             .unwrap()
                     })
                     .collect();
-                raw::develop_stack(mosaics, None, Resolution::Full).unwrap();
+                // Lights on a cone around the view, as a rig's: the demosaic fits every site's
+                // albedo under them, as a capture set's solve does.
+                let (w, h, k) = (mosaics[0].width, mosaics[0].height, mosaics.len());
+                let field = raw::ShadingField::sample(w, h, 16, |_, _| {
+                    Ok((0..k)
+                        .map(|j| {
+                            let phi = j as f64 * std::f64::consts::TAU / k as f64;
+                            [0.5 * phi.cos(), 0.5 * phi.sin(), 0.87]
+                        })
+                        .collect())
+                })
+                .unwrap();
+                raw::develop_stack(mosaics, None, Some(&field), Resolution::Full).unwrap();
                 t.elapsed().as_secs_f64() / files.len() as f64
             })
             .collect(),

@@ -8,6 +8,7 @@ pub mod diligent;
 pub mod exposure;
 pub mod frame_check;
 pub mod interrupt;
+pub mod led_shading;
 pub mod lights;
 pub mod manifest;
 pub mod sequencer;

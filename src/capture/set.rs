@@ -465,10 +465,21 @@ impl CaptureSet {
             .iter()
             .map(|led| std::array::from_fn(|c| led.color[c] * self.rig.sensor.channel_gain[c]))
             .collect();
+        let shading = full_raw
+            .then(|| {
+                super::led_shading::led_shading_field(
+                    &self.rig,
+                    image.width,
+                    image.height,
+                    image.window,
+                )
+            })
+            .flatten();
         let frames = develop_frames_timed(
             lights,
             dark_frame.filter(|_| subtracted.is_some()),
             Some(&illuminants),
+            shading.as_ref(),
             options.resolution,
             clock,
         )

@@ -11,7 +11,9 @@ use rayon::prelude::*;
 
 use super::decode::{decode_raw, RawMeta};
 use super::linear::{decode_dn_image, Levels};
-use super::mosaic::{develop_stack, subtract_dark, LinearMosaic, Resolution};
+use super::mosaic::{subtract_dark, LinearMosaic, Resolution};
+use super::shading::ShadingField;
+use super::stack::develop_stack;
 use crate::error::{Error, Result};
 use crate::plane::LightFrame;
 use crate::timing::{Busy, StageClock};
@@ -161,17 +163,20 @@ pub fn develop_frames(
         lights,
         dark,
         illuminants,
+        None,
         resolution,
         &mut StageClock::start(),
     )
 }
 
 /// [`develop_frames`], timing the dark subtraction and the demosaic (or binning) as stages
-/// of `clock`.
+/// of `clock`; the full-resolution demosaic interpolates the sites' albedos when `shading`
+/// gives the frames' shading vectors (see `stack::develop_stack`).
 pub fn develop_frames_timed(
     lights: Vec<DecodedFrame>,
     dark: Option<DecodedFrame>,
     illuminants: Option<&[[f64; 3]]>,
+    shading: Option<&ShadingField>,
     resolution: Resolution,
     clock: &mut StageClock,
 ) -> Result<Vec<LightFrame>> {
@@ -219,7 +224,9 @@ pub fn develop_frames_timed(
         Resolution::Full => "demosaic",
         Resolution::Half => "bin 2x2",
     };
-    clock.time(stage, || develop_stack(mosaics, illuminants, resolution))
+    clock.time(stage, || {
+        develop_stack(mosaics, illuminants, shading, resolution)
+    })
 }
 
 /// The stage name of the dark-frame subtraction.

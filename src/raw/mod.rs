@@ -13,8 +13,11 @@ mod decode;
 mod develop;
 mod dng;
 mod guard;
+mod hue;
 mod linear;
 mod mosaic;
+mod shading;
+mod stack;
 
 pub use colour::camera_to_srgb;
 pub use decode::{
@@ -28,6 +31,7 @@ pub use develop::{
 pub use dng::{encode_dng, DngStorage};
 pub use linear::{decode_dn_image, encode_png16, read_dn_image, DnImage, Levels};
 pub use mosaic::{
-    bilinear, develop_stack, subtract_dark, LinearMosaic, Mosaic, Resolution, BLUE, GREEN, RED,
-    SATURATION_MARGIN,
+    bilinear, subtract_dark, LinearMosaic, Mosaic, Resolution, BLUE, GREEN, RED, SATURATION_MARGIN,
 };
+pub use shading::ShadingField;
+pub use stack::develop_stack;

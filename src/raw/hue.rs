@@ -1,0 +1,244 @@
+//! Colour ratios at every pixel from a mosaic of site reflectances (each CFA site's own
+//! channel), interpolated along the directions in which the pixel's own material continues.
+//!
+//! A textile's colour changes in steps (thread to thread, thread to gap) a pixel or two wide,
+//! and a missing channel taken from a neighbour across such a step is off by the whole step
+//! (a dark channel next to a light thread: several times its value). So each neighbour of the
+//! missing channel, at offset `d`, is weighted by how well the pixel's own channel continues
+//! toward it: the own-channel site at `2d` (the same CFA site as the pixel) against the
+//! pixel's own. Along a direction where it continues, the neighbour's ratio to the own channel
+//! there (the mean of the two own-channel sites flanking it) is the pixel's ratio: the hue is
+//! constant within a material even where its brightness (fibre ridges) is not.
+
+use rayon::prelude::*;
+
+use super::mosaic::GREEN;
+use super::shading::SiteFit;
+use crate::plane::RgbPlanes;
+
+/// Relative change of the own channel (as a log ratio) at which a direction's weight falls
+/// to `1/e` of the best direction's. Within one material the sites' reflectances differ by
+/// their noise and the fibre texture (a few percent); across a thread or gap edge the colour
+/// changes by tens of percent in most channels.
+const CONTINUITY_SCALE: f32 = 0.1;
+
+/// Squared normal turn (radians^2) that counts like a squared log change of the own channel.
+const NORMAL_WEIGHT: f32 = (CONTINUITY_SCALE / 0.2) * (CONTINUITY_SCALE / 0.2);
+
+/// Per pixel, each channel's ratio to the pixel's own channel (1 for the own channel), from
+/// `reflectance` laid out as `pattern`. A pixel whose own reflectance is not positive gets
+/// ratios of 0 (it is black: its missing channels are 0 too).
+pub fn colour_ratios(
+    width: usize,
+    height: usize,
+    pattern: [[u8; 2]; 2],
+    sites: &[SiteFit],
+) -> RgbPlanes {
+    let (w, h) = (width, height);
+    let mut out = RgbPlanes::new(w, h);
+    let at = |x: isize, y: isize| &sites[mirror(y, h) * w + mirror(x, w)];
+    let rows = out
+        .r
+        .data
+        .par_chunks_mut(w)
+        .zip(out.g.data.par_chunks_mut(w))
+        .zip(out.b.data.par_chunks_mut(w));
+    rows.enumerate().for_each(|(y, ((r, g), b))| {
+        let mut planes = [r, g, b];
+        for x in 0..w {
+            let own = pattern[y % 2][x % 2] as usize;
+            let own_site = at(x as isize, y as isize);
+            for (c, plane) in planes.iter_mut().enumerate() {
+                plane[x] = if c == own {
+                    1.0
+                } else if own_site.albedo > 0.0 {
+                    let offsets = neighbours_of_channel(pattern, x, y, c as u8);
+                    ratio_along(&at, (x as isize, y as isize), own_site, &offsets)
+                } else {
+                    0.0
+                };
+            }
+        }
+    });
+    out
+}
+
+/// Mirrors an index about the mosaic's border (keeps the CFA phase).
+fn mirror(i: isize, n: usize) -> usize {
+    if i < 0 {
+        (-i) as usize
+    } else if i as usize >= n {
+        2 * (n - 1) - i as usize
+    } else {
+        i as usize
+    }
+}
+
+/// Offsets of the nearest sites of `channel` around `(x, y)`: two (left/right or up/down) or
+/// four (edges for G at an R or B site, diagonals for R at B and B at R).
+fn neighbours_of_channel(
+    pattern: [[u8; 2]; 2],
+    x: usize,
+    y: usize,
+    channel: u8,
+) -> Vec<(isize, isize)> {
+    let (sy, sx) = (y % 2, x % 2);
+    if pattern[sy][(sx + 1) % 2] == channel && pattern[(sy + 1) % 2][sx] == channel {
+        vec![(-1, 0), (1, 0), (0, -1), (0, 1)]
+    } else if pattern[sy][(sx + 1) % 2] == channel {
+        vec![(-1, 0), (1, 0)]
+    } else if pattern[(sy + 1) % 2][sx] == channel {
+        vec![(0, -1), (0, 1)]
+    } else {
+        debug_assert!(pattern[sy][sx] != GREEN);
+        vec![(-1, -1), (1, -1), (-1, 1), (1, 1)]
+    }
+}
+
+/// The ratio of the missing channel to the own one at `p`, from the neighbours at `offsets`.
+fn ratio_along<'a>(
+    at: &impl Fn(isize, isize) -> &'a SiteFit,
+    p: (isize, isize),
+    own: &SiteFit,
+    offsets: &[(isize, isize)],
+) -> f32 {
+    let own_value = own.albedo;
+    let mut candidates = [(0.0f32, 0.0f32); 4];
+    let mut best = f32::INFINITY;
+    for (slot, &(dx, dy)) in candidates.iter_mut().zip(offsets) {
+        let beyond = at(p.0 + 2 * dx, p.1 + 2 * dy).albedo;
+        let neighbour = at(p.0 + dx, p.1 + dy);
+        let change = if beyond > 0.0 {
+            let n = neighbour.normal;
+            let cos = own.normal[0] * n[0] + own.normal[1] * n[1] + own.normal[2] * n[2];
+            let turn = (1.0 - cos.min(1.0)).max(0.0) * 2.0; // ~ angle^2
+            (beyond / own_value).ln().powi(2) + turn * NORMAL_WEIGHT
+        } else {
+            f32::INFINITY
+        };
+        let flank = 0.5 * (own_value + beyond);
+        *slot = (change, neighbour.albedo / flank);
+        best = best.min(change);
+    }
+    let candidates = &candidates[..offsets.len()];
+    if !best.is_finite() {
+        // No direction continues (the pixel is an isolated bright site): plain mean.
+        let sum: f32 = offsets
+            .iter()
+            .map(|&(dx, dy)| at(p.0 + dx, p.1 + dy).albedo)
+            .sum();
+        return sum / offsets.len() as f32 / own_value;
+    }
+    let (mut sum, mut weights) = (0.0f32, 0.0f32);
+    for &(change, ratio) in candidates {
+        if change.is_finite() {
+            let weight = (-(change - best) / (CONTINUITY_SCALE * CONTINUITY_SCALE)).exp();
+            sum += weight * ratio;
+            weights += weight;
+        }
+    }
+    sum / weights
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::raw::Mosaic;
+
+    /// The fibre texture's brightness: 8 % either way, slow enough that linear interpolation
+    /// over two sites misses it by at most 0.08 * (0.3 + 0.2)^2 / 2 = 1 % (second difference of
+    /// the sine along an edge or diagonal step).
+    fn shade(x: usize, y: usize) -> f32 {
+        1.0 + 0.08 * (0.3 * x as f32 + 0.2 * y as f32).sin()
+    }
+
+    /// Two materials side by side, split by a vertical edge at column `edge`: each of
+    /// constant hue and normal, brightness varying with [`shade`]. Returns the sites' fits
+    /// and every pixel's true colour.
+    fn two_materials(
+        (w, h, edge): (usize, usize, usize),
+        colours: [[f32; 3]; 2],
+        normals: [[f32; 3]; 2],
+    ) -> (Vec<SiteFit>, Vec<[f32; 3]>) {
+        let pattern = Mosaic::parse_pattern("RGGB").unwrap();
+        let mut sites = Vec::new();
+        let mut truth = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                let side = (x >= edge) as usize;
+                let px = colours[side].map(|c| c * shade(x, y));
+                sites.push(SiteFit {
+                    albedo: px[pattern[y % 2][x % 2] as usize],
+                    normal: normals[side],
+                });
+                truth.push(px);
+            }
+        }
+        (sites, truth)
+    }
+
+    /// Worst relative ratio error away from the border.
+    fn worst_ratio_error(
+        size: (usize, usize, usize),
+        sites: &[SiteFit],
+        truth: &[[f32; 3]],
+    ) -> f32 {
+        let (w, h, _) = size;
+        let pattern = Mosaic::parse_pattern("RGGB").unwrap();
+        let ratios = colour_ratios(w, h, pattern, sites);
+        let mut worst = 0.0f32;
+        for y in 2..h - 2 {
+            for x in 2..w - 2 {
+                let i = y * w + x;
+                let own = pattern[y % 2][x % 2] as usize;
+                for c in 0..3 {
+                    let want = truth[i][c] / truth[i][own];
+                    worst = worst.max((ratios.channels()[c].data[i] / want - 1.0).abs());
+                }
+            }
+        }
+        worst
+    }
+
+    /// The bound: the fibre texture's 1 % interpolation error over the darkest shade (0.92);
+    /// the other material's weight is below exp(-10) in both tests, its ratio at most 13 times.
+    const BOUND: f32 = 0.01 / 0.92 + 6e-4;
+
+    #[test]
+    fn ratios_come_from_the_pixels_own_material_across_a_colour_edge() {
+        let size = (24, 12, 11);
+        let up = [0.0, 0.0, 1.0];
+        // Every channel changes across the edge by at least ln(0.7 / 0.42) = 0.51.
+        let colours = [[0.42, 0.05, 0.05], [0.7, 0.64, 0.46]];
+        let (sites, truth) = two_materials(size, colours, [up, up]);
+        let worst = worst_ratio_error(size, &sites, &truth);
+        assert!(worst < BOUND, "worst relative ratio error {worst}");
+        // A plain mean of the neighbours (bilinear) is off several times over at the edge.
+        let (w, h, edge) = size;
+        let pattern = Mosaic::parse_pattern("RGGB").unwrap();
+        let values: Vec<f32> = sites.iter().map(|s| s.albedo).collect();
+        let plain = super::super::mosaic::bilinear(w, h, pattern, &values);
+        let i = 4 * w + edge - 1;
+        let own = pattern[0][(edge - 1) % 2] as usize;
+        let worst_plain = (0..3)
+            .map(|c| {
+                let got = plain.channels()[c].data[i] / plain.channels()[own].data[i];
+                (got / (truth[i][c] / truth[i][own]) - 1.0).abs()
+            })
+            .fold(0.0f32, f32::max);
+        assert!(worst_plain > 1.0, "bilinear at the edge: {worst_plain}");
+    }
+
+    #[test]
+    fn the_normal_tells_materials_apart_where_the_own_channel_cannot() {
+        // A red thread beside a grey gap: G and B are the same on both sides, so at a G or B
+        // site only the normal (40 degrees apart: weight exp(-2 (1 - cos 40) / 0.2^2) =
+        // exp(-11.7)) says which R neighbour is the pixel's own material.
+        let size = (24, 12, 11);
+        let tilted = [40f32.to_radians().sin(), 0.0, 40f32.to_radians().cos()];
+        let colours = [[0.42, 0.05, 0.05], [0.05, 0.05, 0.05]];
+        let (sites, truth) = two_materials(size, colours, [[0.0, 0.0, 1.0], tilted]);
+        let worst = worst_ratio_error(size, &sites, &truth);
+        assert!(worst < BOUND, "worst relative ratio error {worst}");
+    }
+}
