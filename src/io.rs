@@ -109,29 +109,48 @@ pub fn encode_exr(path: &Path, channels: &[(&str, &Plane)]) -> Result<Vec<u8>> {
 
 /// Reads the named channels of an EXR's first layer; fails naming a missing channel.
 pub fn read_exr(path: &Path, names: &[&str]) -> Result<Vec<Plane>> {
-    let bytes = std::fs::read(path).map_err(|e| PsError::io(path, e))?;
+    // Read through a buffer rather than the whole file at once, and move each channel's
+    // samples out instead of copying them: at 16 MP the maps are hundreds of megabytes.
+    let file = std::fs::File::open(path).map_err(|e| PsError::io(path, e))?;
     let image = read()
         .no_deep_data()
         .largest_resolution_level()
         .all_channels()
         .first_valid_layer()
         .all_attributes()
-        .from_buffered(Cursor::new(bytes))
+        .from_unbuffered(file)
         .map_err(|e| PsError::image(path, e))?;
-    let layer = &image.layer_data;
-    let (width, height) = (layer.size.width(), layer.size.height());
-    names
-        .iter()
-        .map(|name| {
-            let channel = layer
-                .channel_data
-                .list
-                .iter()
-                .find(|c| c.name.to_string() == *name)
-                .ok_or_else(|| PsError::image(path, format!("has no channel \"{name}\"")))?;
-            Plane::from_vec(width, height, channel.sample_data.values_as_f32().collect())
-        })
-        .collect()
+    let (width, height) = (
+        image.layer_data.size.width(),
+        image.layer_data.size.height(),
+    );
+    let mut channels: Vec<(String, Option<FlatSamples>)> = image
+        .layer_data
+        .channel_data
+        .list
+        .into_iter()
+        .map(|c| (c.name.to_string(), Some(c.sample_data)))
+        .collect();
+    let mut planes = Vec::with_capacity(names.len());
+    for (k, name) in names.iter().enumerate() {
+        let slot = channels
+            .iter_mut()
+            .find(|(n, _)| n == name)
+            .map(|(_, samples)| samples)
+            .ok_or_else(|| PsError::image(path, format!("has no channel \"{name}\"")))?;
+        let asked_again = names[k + 1..].contains(name);
+        let values = match (slot.take(), asked_again) {
+            (Some(FlatSamples::F32(v)), false) => v,
+            (Some(samples), _) => {
+                let v = samples.values_as_f32().collect();
+                *slot = Some(samples);
+                v
+            }
+            (None, _) => unreachable!("a channel is taken only when it is not asked again"),
+        };
+        planes.push(Plane::from_vec(width, height, values)?);
+    }
+    Ok(planes)
 }
 
 #[cfg(test)]

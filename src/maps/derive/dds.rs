@@ -5,7 +5,7 @@
 
 use std::path::Path;
 
-use image_dds::{ImageFormat, Mipmaps, Quality, SurfaceRgba8};
+use image_dds::{ImageFormat, Mipmaps, Quality, Surface, SurfaceRgba8};
 use rayon::prelude::*;
 
 use super::mips::MipChain;
@@ -124,8 +124,16 @@ fn halve_plane(p: &Plane) -> Plane {
     super::mips::halve(p)
 }
 
+/// Rows per strip handed to one encoder call: a multiple of the 4-row block height, so the
+/// strips' blocks concatenate into the level's blocks in the file's row-of-blocks order.
+const STRIP_ROWS: usize = 256;
+
 /// Encodes a surface whose levels the caller made (so the normals are renormalised and the
 /// roughness antialiased per level, which a generic mip generator would not do).
+///
+/// image_dds encodes on one thread; each 4x4 block is compressed on its own, so every level is
+/// cut into strips of whole block rows that encode in parallel and are concatenated, giving
+/// the same bytes as one call.
 fn encode(
     path: &Path,
     width: u32,
@@ -133,25 +141,53 @@ fn encode(
     levels: Vec<Vec<[u8; 4]>>,
     format: ImageFormat,
 ) -> Result<()> {
+    let failed =
+        |e: &dyn std::fmt::Display| Error::image(path, format!("DDS encoding failed: {e}"));
     let mipmaps = levels.len() as u32;
-    let data: Vec<u8> = levels.into_iter().flatten().flatten().collect();
-    let surface = SurfaceRgba8 {
+    let mut data = Vec::new();
+    for (level, texels) in levels.iter().enumerate() {
+        let w = (width >> level).max(1) as usize;
+        let h = (height >> level).max(1) as usize;
+        let strips: Vec<Vec<u8>> = texels
+            .par_chunks(w * STRIP_ROWS)
+            .map(|strip| encode_strip(strip, w, format))
+            .collect::<std::result::Result<_, _>>()
+            .map_err(|e| failed(&e))?;
+        debug_assert_eq!(texels.len(), w * h);
+        data.extend(strips.into_iter().flatten());
+    }
+    let surface = Surface {
         width,
         height,
         depth: 1,
         layers: 1,
         mipmaps,
-        data: data.as_slice(),
+        image_format: format,
+        data,
     };
-    let failed =
-        |e: &dyn std::fmt::Display| Error::image(path, format!("DDS encoding failed: {e}"));
-    let dds = surface
-        .encode(format, Quality::Normal, Mipmaps::FromSurface)
-        .map_err(|e| failed(&e))?
-        .to_dds()
-        .map_err(|e| failed(&e))?;
+    let dds = surface.to_dds().map_err(|e| failed(&e))?;
     let mut bytes = Vec::new();
     dds.write(&mut bytes)
         .map_err(|e| Error::image(path, format!("DDS writing failed: {e}")))?;
     write_atomic(path, &bytes)
+}
+
+/// The blocks of `texels` (`width` wide, whole rows), one level without mips.
+fn encode_strip(
+    texels: &[[u8; 4]],
+    width: usize,
+    format: ImageFormat,
+) -> std::result::Result<Vec<u8>, image_dds::error::SurfaceError> {
+    let bytes: Vec<u8> = texels.iter().flatten().copied().collect();
+    let strip = SurfaceRgba8 {
+        width: width as u32,
+        height: (texels.len() / width) as u32,
+        depth: 1,
+        layers: 1,
+        mipmaps: 1,
+        data: bytes.as_slice(),
+    };
+    Ok(strip
+        .encode(format, Quality::Normal, Mipmaps::Disabled)?
+        .data)
 }

@@ -76,9 +76,13 @@ fn rows(fft: &Arc<dyn Fft<f32>>, data: &mut [Complex32], len: usize) {
 }
 
 /// `width x height` row-major to `height x width` row-major, in cache-sized blocks.
-fn transpose(src: &[Complex32], width: usize, height: usize) -> Vec<Complex32> {
+pub fn transpose<T: Copy + Default + Send + Sync>(
+    src: &[T],
+    width: usize,
+    height: usize,
+) -> Vec<T> {
     const BLOCK: usize = 32;
-    let mut dst = vec![Complex32::default(); src.len()];
+    let mut dst = vec![T::default(); src.len()];
     dst.par_chunks_mut(height * BLOCK)
         .enumerate()
         .for_each(|(bx, out)| {

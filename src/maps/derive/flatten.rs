@@ -5,6 +5,7 @@
 
 use rayon::prelude::*;
 
+use super::fft::transpose;
 use crate::plane::Plane;
 
 /// Slopes steeper than this (about 84 deg) are clamped before filtering, so a grazing or
@@ -114,16 +115,6 @@ fn box_1d(line: &mut [f32], r: usize) {
         sum += at(i + r + 1) - at(i - r);
     }
     line.copy_from_slice(&out);
-}
-
-fn transpose(src: &[f32], width: usize, height: usize) -> Vec<f32> {
-    let mut dst = vec![0.0; src.len()];
-    dst.par_chunks_mut(height).enumerate().for_each(|(x, col)| {
-        for (y, v) in col.iter_mut().enumerate() {
-            *v = src[y * width + x];
-        }
-    });
-    dst
 }
 
 #[cfg(test)]

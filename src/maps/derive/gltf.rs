@@ -16,11 +16,13 @@
 
 use std::path::Path;
 
+use rayon::prelude::*;
+
 use gltf_json::validation::Validate;
 use serde::Serialize;
 use serde_json::json;
 
-use super::outputs::{albedo_srgb, normal_channels, write_rgb};
+use super::outputs::{albedo_srgb, normal_component, write_rgb, Texel};
 use super::{fitted_sheen, SolvedMaps};
 use crate::error::{Error, Result};
 use crate::fsutil::write_atomic;
@@ -61,17 +63,19 @@ pub fn write(dir: &Path, maps: &SolvedMaps, roughness: f64) -> Result<Option<She
     let document = document(size_m, buffer.len(), roughness, sheen);
     let text = checked(&document, &dir.join(GLTF_FILE))?;
 
-    let normal = normal_channels(&maps.normal, NormalConvention::OpenGl);
-    let n = w * h;
-    let normal_rgb: Vec<f32> = (0..n * 3)
-        .map(|k| normal[k % 3][k / 3] * 0.5 + 0.5)
-        .collect();
-    let mr: Vec<f32> = (0..n * 3)
-        .map(|k| if k % 3 == 1 { roughness as f32 } else { 0.0 })
-        .collect();
-    write_rgb(&dir.join("gltf_basecolor.png"), w, h, &albedo_srgb(maps), 8)?;
-    write_rgb(&dir.join("gltf_normal.png"), w, h, &normal_rgb, 8)?;
-    write_rgb(&dir.join("gltf_metallic_roughness.png"), w, h, &mr, 8)?;
+    let normal =
+        |i: usize, c: usize| normal_component(maps, NormalConvention::OpenGl, i, c) * 0.5 + 0.5;
+    let albedo = |i: usize, c: usize| albedo_srgb(maps, i, c);
+    let metallic_roughness = |_: usize, c: usize| if c == 1 { roughness as f32 } else { 0.0 };
+    let textures: [(&str, &Texel); 3] = [
+        ("gltf_basecolor.png", &albedo),
+        ("gltf_normal.png", &normal),
+        ("gltf_metallic_roughness.png", &metallic_roughness),
+    ];
+    textures
+        .par_iter()
+        .map(|(name, texel)| write_rgb(&dir.join(name), w, h, 8, texel))
+        .collect::<Result<Vec<()>>>()?;
     write_atomic(&dir.join("material.bin"), &buffer)?;
     write_atomic(&dir.join(GLTF_FILE), text.as_bytes())?;
     Ok(sheen)

@@ -1,12 +1,16 @@
 //! Height from the normal map by Frankot-Chellappa: the least-squares integrable surface for
-//! the slopes, solved in the Fourier domain. A sample's edges are not periodic, so the slopes
-//! are mirrored to twice the size first (an even extension of the height, which has no jump
-//! at the wrap); a tile that already repeats is integrated as it is.
+//! the slopes, solved in the Fourier domain. A sample's edges are not periodic, so the height
+//! is taken as mirrored to twice the size (an even extension, which has no jump at the wrap),
+//! solved with cosine and sine transforms on the sample's own grid; a tile that already
+//! repeats is integrated with the FFT as it is.
+
+use std::sync::Arc;
 
 use rayon::prelude::*;
+use rustdct::{DctPlanner, TransformType2And3};
 use rustfft::num_complex::Complex32;
 
-use super::fft::{angular_frequency, Fft2};
+use super::fft::{angular_frequency, transpose, Fft2};
 use crate::plane::Plane;
 
 /// Slopes steeper than this (63 deg) are clamped: a woven sample's steps (thread edge down to
@@ -25,71 +29,16 @@ pub enum Boundary {
 /// field with zero mean, in units of `pixel_size` (height in mm for a size in mm).
 pub fn integrate(normal: &[Plane; 3], pixel_size: f64, boundary: Boundary) -> Plane {
     let (w, h) = (normal[0].width, normal[0].height);
-    // dz/dx along columns, dz/drow along rows (rows run toward -y).
-    let slope = |i: usize| -> (f32, f32) {
-        let z = normal[2].data[i].max(1e-3);
-        let p = (-normal[0].data[i] / z).clamp(-MAX_SLOPE, MAX_SLOPE);
-        let q = (normal[1].data[i] / z).clamp(-MAX_SLOPE, MAX_SLOPE);
-        (p, q)
+    let (p, q) = slopes(normal);
+    let z = match boundary {
+        Boundary::Periodic => integrate_periodic(&p, &q, w, h),
+        Boundary::Mirrored => integrate_mirrored(p, q, w, h),
     };
-    let (ew, eh) = match boundary {
-        Boundary::Periodic => (w, h),
-        Boundary::Mirrored => (2 * w, 2 * h),
-    };
-    // p + i q in one complex buffer: both are real, so one transform carries both.
-    let mut buf = vec![Complex32::default(); ew * eh];
-    buf.par_chunks_mut(ew).enumerate().for_each(|(ey, row)| {
-        let (y, flip_y) = fold(ey, h);
-        for (ex, v) in row.iter_mut().enumerate() {
-            let (x, flip_x) = fold(ex, w);
-            let (mut p, mut q) = slope(y * w + x);
-            // Mirroring the height negates the slope across the mirror's axis.
-            if flip_x {
-                p = -p;
-            }
-            if flip_y {
-                q = -q;
-            }
-            *v = Complex32::new(p, q);
-        }
-    });
-    let fft = Fft2::new(ew, eh);
-    let mut spectrum = fft.forward(buf);
-    // Transposed layout: index u * eh + v. P(k) = (G(k) + G*(-k)) / 2, Q = (G - G*(-k)) / 2i.
-    let g = spectrum.clone();
-    spectrum
-        .par_chunks_mut(eh)
-        .enumerate()
-        .for_each(|(u, column)| {
-            let wu = angular_frequency(u, ew);
-            let mu = (ew - u) % ew;
-            for (v, out) in column.iter_mut().enumerate() {
-                let wv = angular_frequency(v, eh);
-                let mv = (eh - v) % eh;
-                let d = wu * wu + wv * wv;
-                if d == 0.0 {
-                    *out = Complex32::default();
-                    continue;
-                }
-                let gk = g[u * eh + v];
-                let gm = g[mu * eh + mv].conj();
-                let p = (gk + gm) * 0.5;
-                let q = (gk - gm) * Complex32::new(0.0, -0.5);
-                // z = F^-1[ -i (wu P + wv Q) / (wu^2 + wv^2) ]
-                *out = (p * wu + q * wv) * Complex32::new(0.0, -1.0 / d);
-            }
-        });
-    drop(g);
-    let z = fft.inverse(spectrum);
     let scale = pixel_size as f32;
-    let mut data = vec![0.0f32; w * h];
-    data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (x, v) in row.iter_mut().enumerate() {
-            *v = z[y * ew + x].re * scale;
-        }
-    });
+    let mut data = z;
     let mean = data.iter().map(|&v| v as f64).sum::<f64>() / data.len() as f64;
-    data.par_iter_mut().for_each(|v| *v -= mean as f32);
+    data.par_iter_mut()
+        .for_each(|v| *v = (*v - mean as f32) * scale);
     Plane {
         width: w,
         height: h,
@@ -97,14 +46,140 @@ pub fn integrate(normal: &[Plane; 3], pixel_size: f64, boundary: Boundary) -> Pl
     }
 }
 
-/// Index into the original of position `e` of the mirrored extension, and whether it is in
-/// the mirrored half.
-fn fold(e: usize, n: usize) -> (usize, bool) {
-    if e < n {
-        (e, false)
-    } else {
-        (2 * n - 1 - e, true)
-    }
+/// dz/dx along columns and dz/drow along rows (rows run toward -y), clamped to `MAX_SLOPE`.
+fn slopes(normal: &[Plane; 3]) -> (Vec<f32>, Vec<f32>) {
+    (0..normal[0].data.len())
+        .into_par_iter()
+        .map(|i| {
+            let z = normal[2].data[i].max(1e-3);
+            let p = (-normal[0].data[i] / z).clamp(-MAX_SLOPE, MAX_SLOPE);
+            let q = (normal[1].data[i] / z).clamp(-MAX_SLOPE, MAX_SLOPE);
+            (p, q)
+        })
+        .unzip()
+}
+
+/// Frankot-Chellappa on a tile whose edges meet: one complex FFT carries both slopes.
+fn integrate_periodic(p: &[f32], q: &[f32], w: usize, h: usize) -> Vec<f32> {
+    // p + i q in one complex buffer: both are real, so one transform carries both.
+    let buf: Vec<Complex32> = p
+        .par_iter()
+        .zip(q)
+        .map(|(&p, &q)| Complex32::new(p, q))
+        .collect();
+    let fft = Fft2::new(w, h);
+    let g = fft.forward(buf);
+    // Transposed layout: index u * h + v. P(k) = (G(k) + G*(-k)) / 2, Q = (G - G*(-k)) / 2i.
+    let mut spectrum = vec![Complex32::default(); w * h];
+    spectrum
+        .par_chunks_mut(h)
+        .enumerate()
+        .for_each(|(u, column)| {
+            let wu = angular_frequency(u, w);
+            let mu = (w - u) % w;
+            for (v, out) in column.iter_mut().enumerate() {
+                let wv = angular_frequency(v, h);
+                let mv = (h - v) % h;
+                let d = wu * wu + wv * wv;
+                if d == 0.0 {
+                    continue;
+                }
+                let gk = g[u * h + v];
+                let gm = g[mu * h + mv].conj();
+                let p = (gk + gm) * 0.5;
+                let q = (gk - gm) * Complex32::new(0.0, -0.5);
+                // z = F^-1[ -i (wu P + wv Q) / (wu^2 + wv^2) ]
+                *out = (p * wu + q * wv) * Complex32::new(0.0, -1.0 / d);
+            }
+        });
+    drop(g);
+    fft.inverse(spectrum).into_iter().map(|c| c.re).collect()
+}
+
+/// Frankot-Chellappa on the sample mirrored to twice its size, computed without building the
+/// mirror: the mirrored height is even about the half-sample edges, so its spectrum is the
+/// DCT-II of the height, and the mirrored slopes (odd across their own axis) have the DST-II
+/// there. With w_u = pi u / W, the Fourier solution becomes, per (u, v),
+///     C[z] = -(w_u S_x C_y[p] + w_v C_x S_y[q]) / (w_u^2 + w_v^2),
+/// on a W x H real grid instead of a 2W x 2H complex one. The Nyquist bins (u = W or v = H),
+/// where the derivative of a half-sample-even height vanishes, are left out.
+fn integrate_mirrored(mut p: Vec<f32>, mut q: Vec<f32>, w: usize, h: usize) -> Vec<f32> {
+    let mut planner = DctPlanner::new();
+    let (along_x, along_y) = (planner.plan_dct2(w), planner.plan_dct2(h));
+    // Along x (rows of length w): sine transform of p, cosine transform of q.
+    rows(&mut p, w, |row, s| sine(&along_x, row, s), &along_x);
+    rows(
+        &mut q,
+        w,
+        |row, s| along_x.process_dct2_with_scratch(row, s),
+        &along_x,
+    );
+    // Along y, on the transposed planes (index u * h + v).
+    let mut sp = transpose(&p, w, h);
+    let mut cq = transpose(&q, w, h);
+    drop((p, q));
+    rows(
+        &mut sp,
+        h,
+        |row, s| along_y.process_dct2_with_scratch(row, s),
+        &along_y,
+    );
+    rows(&mut cq, h, |row, s| sine(&along_y, row, s), &along_y);
+    // The height's cosine spectrum, in place of sp.
+    sp.par_chunks_mut(h)
+        .zip(cq.par_chunks(h))
+        .enumerate()
+        .for_each(|(u, (column, cq))| {
+            let wu = std::f32::consts::PI * u as f32 / w as f32;
+            for (v, (c, &cq)) in column.iter_mut().zip(cq).enumerate() {
+                let wv = std::f32::consts::PI * v as f32 / h as f32;
+                let d = wu * wu + wv * wv;
+                *c = if d == 0.0 {
+                    0.0
+                } else {
+                    -(wu * *c + wv * cq) / d
+                };
+            }
+        });
+    drop(cq);
+    // Back: DCT-III along y, transpose, DCT-III along x, and DCT-III * 2/N inverts DCT-II.
+    rows(
+        &mut sp,
+        h,
+        |row, s| along_y.process_dct3_with_scratch(row, s),
+        &along_y,
+    );
+    let mut z = transpose(&sp, h, w);
+    drop(sp);
+    rows(
+        &mut z,
+        w,
+        |row, s| along_x.process_dct3_with_scratch(row, s),
+        &along_x,
+    );
+    let norm = 4.0 / (w * h) as f32;
+    z.par_iter_mut().for_each(|v| *v *= norm);
+    z
+}
+
+/// The sine spectrum S(k) = sum_n x[n] sin(pi k (n + 1/2) / N) at k = 0..N-1 (S(0) = 0): the
+/// DST-II gives k = 1..N, shifted up one bin, and its last bin (the Nyquist) is dropped.
+fn sine(transform: &Arc<dyn TransformType2And3<f32>>, row: &mut [f32], scratch: &mut [f32]) {
+    transform.process_dst2_with_scratch(row, scratch);
+    row.copy_within(0..row.len() - 1, 1);
+    row[0] = 0.0;
+}
+
+/// Applies `f` to every `len`-long row of `data` in parallel, each worker with its scratch.
+fn rows(
+    data: &mut [f32],
+    len: usize,
+    f: impl Fn(&mut [f32], &mut [f32]) + Sync,
+    transform: &Arc<dyn TransformType2And3<f32>>,
+) {
+    let scratch_len = transform.get_scratch_len();
+    data.par_chunks_mut(len)
+        .for_each_init(|| vec![0.0f32; scratch_len], |scratch, row| f(row, scratch));
 }
 
 /// RMS of `a - b` after removing the best-fitting plane `c0 + c1 x + c2 y` of the difference
@@ -227,5 +302,43 @@ mod tests {
             "{}",
             rms_after_plane(&z, &truth)
         );
+    }
+
+    #[test]
+    fn a_surface_flat_at_its_edges_is_recovered_exactly_without_periodicity() {
+        // z = cos(3 pi (c + 1/2) / w) cos(2 pi (r + 1/2) / h) + 0.5 cos(5 pi (c + 1/2) / w):
+        // half-sample even at every edge (what the mirrored solver assumes) but not periodic
+        // on the w x h grid; its slopes are analytic, so the only error is f32 rounding.
+        let (w, h) = (60, 44);
+        let pi = std::f64::consts::PI;
+        let (a, b, c) = (
+            3.0 * pi / w as f64,
+            2.0 * pi / h as f64,
+            5.0 * pi / w as f64,
+        );
+        let mut truth = Plane::new(w, h, 0.0);
+        let mut n = [
+            Plane::new(w, h, 0.0),
+            Plane::new(w, h, 0.0),
+            Plane::new(w, h, 0.0),
+        ];
+        for r in 0..h {
+            for col in 0..w {
+                let (x, y) = (col as f64 + 0.5, r as f64 + 0.5);
+                let z = (a * x).cos() * (b * y).cos() + 0.5 * (c * x).cos();
+                // p = dz/dcol; q = dz/drow, which the normal carries as +n_y / n_z.
+                let p = -a * (a * x).sin() * (b * y).cos() - 0.5 * c * (c * x).sin();
+                let q = -b * (a * x).cos() * (b * y).sin();
+                let inv = 1.0 / (p * p + q * q + 1.0).sqrt();
+                let i = r * w + col;
+                truth.data[i] = z as f32;
+                n[0].data[i] = (-p * inv) as f32;
+                n[1].data[i] = (q * inv) as f32;
+                n[2].data[i] = inv as f32;
+            }
+        }
+        let z = integrate(&n, 1.0, Boundary::Mirrored);
+        let rms = rms_after_plane(&z, &truth);
+        assert!(rms < 1e-4, "{rms}");
     }
 }

@@ -50,60 +50,62 @@ pub fn write_textures(
     bits: u8,
 ) -> Result<()> {
     let (w, h) = (maps.width(), maps.height());
-    let normal = normal_channels(&maps.normal, convention);
     let unit = |v: f32| v * 0.5 + 0.5;
-    let rgb = interleave(w * h, |i, c| unit(normal[c][i]));
-    let xy = interleave(w * h, |i, c| if c < 2 { unit(normal[c][i]) } else { 0.0 });
-    let albedo = albedo_srgb(maps);
-    let jobs: [(&str, &Vec<f32>); 3] = [
-        ("normal.png", &rgb),
+    let normal = |i: usize, c: usize| unit(normal_component(maps, convention, i, c));
+    let xy = |i: usize, c: usize| if c < 2 { normal(i, c) } else { 0.0 };
+    let albedo = |i: usize, c: usize| albedo_srgb(maps, i, c);
+    let jobs: [(&str, &Texel); 3] = [
+        ("normal.png", &normal),
         ("normal_xy.png", &xy),
         ("albedo.png", &albedo),
     ];
     jobs.par_iter()
-        .map(|(name, data)| write_rgb(&dir.join(name), w, h, data, bits))
+        .map(|(name, texel)| write_rgb(&dir.join(name), w, h, bits, texel))
         .collect::<Result<Vec<()>>>()?;
     Ok(())
 }
 
-/// The normal's three components in `convention`, as slices.
-pub fn normal_channels(normal: &[Plane; 3], convention: NormalConvention) -> [Vec<f32>; 3] {
-    let y = normal[1].data.iter().map(|&v| convention.y(v)).collect();
-    [normal[0].data.clone(), y, normal[2].data.clone()]
+/// A texture's value in [0, 1] at pixel `i`, channel `c`.
+pub type Texel<'a> = dyn Fn(usize, usize) -> f32 + Sync + 'a;
+
+/// Component `c` of the unit normal at pixel `i`, with Y in `convention`.
+pub fn normal_component(
+    maps: &SolvedMaps,
+    convention: NormalConvention,
+    i: usize,
+    c: usize,
+) -> f32 {
+    let v = maps.normal[c].data[i];
+    if c == 1 {
+        convention.y(v)
+    } else {
+        v
+    }
 }
 
-/// Albedo as interleaved sRGB-encoded values in [0, 1]; unsolved pixels black.
-pub fn albedo_srgb(maps: &SolvedMaps) -> Vec<f32> {
-    let n = maps.width() * maps.height();
-    interleave(n, |i, c| {
-        if maps.solved[i] {
-            linear_to_srgb(maps.albedo[c].data[i])
-        } else {
-            0.0
-        }
-    })
+/// Albedo channel `c` at pixel `i`, sRGB-encoded in [0, 1]; unsolved pixels black.
+pub fn albedo_srgb(maps: &SolvedMaps, i: usize, c: usize) -> f32 {
+    if maps.solved[i] {
+        linear_to_srgb(maps.albedo[c].data[i])
+    } else {
+        0.0
+    }
 }
 
-fn interleave(n: usize, f: impl Fn(usize, usize) -> f32 + Sync) -> Vec<f32> {
-    (0..n * 3)
-        .into_par_iter()
-        .map(|k| f(k / 3, k % 3))
-        .collect()
-}
-
-/// Interleaved RGB values in [0, 1] as an 8- or 16-bit PNG.
-pub fn write_rgb(path: &Path, w: usize, h: usize, data: &[f32], bits: u8) -> Result<()> {
+/// An RGB texture of `texel` values in [0, 1], quantised straight to an 8- or 16-bit PNG.
+pub fn write_rgb(path: &Path, w: usize, h: usize, bits: u8, texel: &Texel) -> Result<()> {
     let bad = || Error::image(path, "size does not match its data");
+    let value = |k: usize| texel(k / 3, k % 3).clamp(0.0, 1.0);
     let image = if bits == 8 {
-        let v = data
-            .iter()
-            .map(|&x| (x.clamp(0.0, 1.0) * 255.0).round() as u8)
+        let v = (0..w * h * 3)
+            .into_par_iter()
+            .map(|k| (value(k) * 255.0).round() as u8)
             .collect();
         DynamicImage::ImageRgb8(ImageBuffer::from_raw(w as u32, h as u32, v).ok_or_else(bad)?)
     } else {
-        let v = data
-            .iter()
-            .map(|&x| (x.clamp(0.0, 1.0) * 65535.0).round() as u16)
+        let v = (0..w * h * 3)
+            .into_par_iter()
+            .map(|k| (value(k) * 65535.0).round() as u16)
             .collect();
         DynamicImage::ImageRgb16(ImageBuffer::from_raw(w as u32, h as u32, v).ok_or_else(bad)?)
     };

@@ -102,9 +102,17 @@ pub fn load(dir: &Path) -> Result<SolvedMaps> {
         }
         read_exr(&path, channels)
     };
-    let mut normal = read("normal.exr", &["R", "G", "B"])?;
-    let albedo = read("albedo.exr", &["R", "G", "B"])?;
-    let confidence = read("confidence.exr", &["status", "fit"])?;
+    // The three files are independent: read them side by side (each is one core's work).
+    let ((normal, albedo), confidence) = rayon::join(
+        || {
+            rayon::join(
+                || read("normal.exr", &["R", "G", "B"]),
+                || read("albedo.exr", &["R", "G", "B"]),
+            )
+        },
+        || read("confidence.exr", &["status", "fit"]),
+    );
+    let (mut normal, albedo, confidence) = (normal?, albedo?, confidence?);
     let (w, h) = (normal[0].width, normal[0].height);
     if albedo[0].width != w || albedo[0].height != h || confidence[0].width != w {
         return Err(Error::Invalid(format!(

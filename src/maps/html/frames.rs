@@ -58,5 +58,8 @@ pub fn write_frame_strip(frames: &Frames, dir: &Path) -> Result<()> {
         let v = sample(k, x, y as usize);
         image::Rgb(v.map(|c| (linear_to_srgb(c / white) * 255.0).round() as u8))
     });
-    write_atomic(&dir.join(FRAME_STRIP_FILE), &jpeg_bytes(&strip, 85))
+    write_atomic(
+        &dir.join(FRAME_STRIP_FILE),
+        &jpeg_bytes(&strip, 85, jpeg_encoder::SamplingFactor::R_4_2_2),
+    )
 }

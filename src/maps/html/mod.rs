@@ -16,6 +16,9 @@ mod warnings;
 
 use std::path::{Path, PathBuf};
 
+use image::RgbImage;
+use jpeg_encoder::SamplingFactor;
+use rayon::prelude::*;
 use serde::Serialize;
 use serde_json::{json, Value};
 
@@ -34,13 +37,15 @@ pub const PAGE_FILE: &str = "report.html";
 /// The page must stay under this size (a 16 MP solve included).
 pub const PAGE_BUDGET_BYTES: usize = 25_000_000;
 
-/// What the loupe's full-resolution views may take of the budget (base64 included); the rest
-/// is the display maps, the frame previews and the script. Above it the loupe steps down
-/// to every 2nd, 3rd ... pixel and the page says so.
-const LOUPE_BUDGET_BYTES: usize = 16_000_000;
+/// What the page may need beyond the parts it measures (titles, attributes, the data JSON's
+/// own fields); the loupe's full-resolution views take the rest of the budget. Above that
+/// they first lower their JPEG quality down the ladder below, and only then step down to
+/// every 2nd, 3rd ... pixel; the page says which.
+const PAGE_MARGIN_BYTES: usize = 200_000;
 
-/// JPEG quality of the loupe views.
-const LOUPE_QUALITY: u8 = 88;
+/// JPEG qualities the loupe tries at each sampling, best first. The floor keeps block
+/// artefacts below a thread's edge contrast; under it, resolution is given up instead.
+const LOUPE_QUALITIES: [u8; 3] = [88, 80, 72];
 
 const TEMPLATE: &str = include_str!("page.html");
 const STYLE: &str = include_str!("page.css");
@@ -58,6 +63,8 @@ pub struct PageSummary {
     pub display: Reduction,
     /// 1: the loupe shows every pixel; n: every n-th (to stay within the size budget).
     pub loupe_step: usize,
+    /// JPEG quality of the loupe's views (0 when the page has no loupe).
+    pub loupe_quality: u8,
     /// Maps that could not be read, in words.
     pub missing: Vec<String>,
     /// Why `report.json` could not be used, when it could not.
@@ -132,25 +139,58 @@ pub fn escape(text: &str) -> String {
         .replace('"', "&quot;")
 }
 
-/// The loupe's full-resolution JPEGs, the finest sampling that fits the budget.
-fn loupe_views(maps: &FullMaps) -> (usize, Vec<(String, Vec<u8>)>) {
+/// The loupe's views as JPEGs: the finest sampling, then the best quality, that fits the
+/// budget.
+fn loupe_views(maps: &FullMaps, budget: usize) -> Loupe {
     let mut step = 1;
     loop {
         let (albedo, normal) = images::full_views(maps, step);
-        let views: Vec<(String, Vec<u8>)> = [("albedo", albedo), ("normal", normal)]
+        let sources: Vec<(&str, RgbImage)> = [("albedo", albedo), ("normal", normal)]
             .into_iter()
-            .filter_map(|(name, img)| {
-                img.map(|i| (name.to_string(), images::jpeg_bytes(&i, LOUPE_QUALITY)))
-            })
+            .filter_map(|(name, img)| img.map(|i| (name, i)))
             .collect();
-        let base64_bytes: usize = views.iter().map(|(_, b)| b.len() * 4 / 3).sum();
-        if base64_bytes <= LOUPE_BUDGET_BYTES || step >= 16 {
-            return (step, views);
+        let mut base64_bytes = 0;
+        for quality in LOUPE_QUALITIES {
+            let views: Vec<(String, Vec<u8>)> = sources
+                .par_iter()
+                .map(|(name, img)| {
+                    (
+                        name.to_string(),
+                        images::jpeg_bytes(img, quality, chroma(name)),
+                    )
+                })
+                .collect();
+            base64_bytes = views.iter().map(|(_, b)| b.len() * 4 / 3).sum();
+            if base64_bytes <= budget || step >= 16 {
+                return Loupe {
+                    step,
+                    quality,
+                    views,
+                };
+            }
         }
         // Bytes scale with pixels: jump straight to a step that should fit.
-        let ratio = (base64_bytes as f64 / LOUPE_BUDGET_BYTES as f64).sqrt();
+        let ratio = (base64_bytes as f64 / budget.max(1) as f64).sqrt();
         step = (step as f64 * ratio).ceil().max(step as f64 + 1.0) as usize;
     }
+}
+
+/// Chroma sampling of a loupe view: the albedo's colour varies more slowly than its
+/// brightness, as photographs' does (4:2:0); the normal map's colour is its X and Y, so it
+/// keeps full vertical chroma resolution (4:2:2).
+fn chroma(view: &str) -> SamplingFactor {
+    if view == "albedo" {
+        SamplingFactor::R_4_2_0
+    } else {
+        SamplingFactor::R_4_2_2
+    }
+}
+
+/// The loupe's sources: every `step`-th pixel, JPEG at `quality`.
+struct Loupe {
+    step: usize,
+    quality: u8,
+    views: Vec<(String, Vec<u8>)>,
 }
 
 struct Parts {
@@ -368,12 +408,14 @@ fn map_parts(maps: &FullMaps, textures: Option<&RelightTextures>) -> String {
     out
 }
 
-fn loupe_parts(maps: &FullMaps) -> (usize, String) {
+/// The loupe's `<img>` tags, with its sampling step and JPEG quality (1 and 0 without maps).
+fn loupe_parts(maps: &FullMaps, budget: usize) -> (usize, u8, String) {
     if maps.albedo.is_none() || maps.normal.is_none() {
-        return (1, String::new());
+        return (1, 0, String::new());
     }
-    let (step, views) = loupe_views(maps);
-    let tags = views
+    let loupe = loupe_views(maps, budget);
+    let tags = loupe
+        .views
         .iter()
         .map(|(name, bytes)| {
             format!(
@@ -382,7 +424,7 @@ fn loupe_parts(maps: &FullMaps) -> (usize, String) {
             )
         })
         .collect();
-    (step, tags)
+    (loupe.step, loupe.quality, tags)
 }
 
 fn frames_part(dir: &Path, report: Option<&Value>) -> (String, Value) {
@@ -422,21 +464,37 @@ fn build_parts(dir: &Path, report: std::result::Result<&Value, &str>) -> (Parts,
     let maps = FullMaps::read(dir, normal_convention(report.ok()));
     let r = Reduction::for_size(maps.width, maps.height);
     let textures = images::relight_textures(&maps, &r);
-    let (loupe_step, loupe) = loupe_parts(&maps);
     let (frames, frames_data) = frames_part(dir, report.ok());
+    let map_html = map_parts(&maps, textures.as_ref());
+    let warnings = warnings::collect(report, &maps);
+    let classes = warnings::render(&warnings) + &class_parts(&maps, &r);
+    // The loupe takes what the rest of the page leaves of the budget (the report's JSON, the
+    // template, script and shaders, and a margin for the titles).
+    let rest = map_html.len()
+        + classes.len()
+        + frames.len()
+        + report.ok().map_or(0, |v| v.to_string().len())
+        + TEMPLATE.len()
+        + STYLE.len()
+        + SCRIPT.len()
+        + VERTEX_SHADER.len()
+        + FRAGMENT_SHADER.len()
+        + PAGE_MARGIN_BYTES;
+    let (loupe_step, loupe_quality, loupe) =
+        loupe_parts(&maps, PAGE_BUDGET_BYTES.saturating_sub(rest));
     let relight = match &textures {
         Some(_) => String::new(),
         None => {
             "<p class=\"absent\">no relight: it needs both the albedo and normal maps</p>".into()
         }
     };
-    let warnings = warnings::collect(report, &maps);
     let data = json!({
         "report": report.ok(),
         "report_error": report.err(),
         "full": {"width": maps.width, "height": maps.height},
         "display": r,
         "loupe_step": loupe_step,
+        "loupe_quality": loupe_quality,
         "relight": textures.is_some(),
         "frames": frames_data,
         "defaults": RelightParams::default(),
@@ -449,12 +507,13 @@ fn build_parts(dir: &Path, report: std::result::Result<&Value, &str>) -> (Parts,
         height: maps.height,
         display: r,
         loupe_step,
+        loupe_quality,
         missing: maps.missing.clone(),
         report_error: report.err().map(str::to_string),
     };
     let parts = Parts {
-        maps: map_parts(&maps, textures.as_ref()),
-        classes: warnings::render(&warnings) + &class_parts(&maps, &r),
+        maps: map_html,
+        classes,
         loupe,
         relight,
         frames,

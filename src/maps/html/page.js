@@ -30,7 +30,8 @@
       ctx.fillRect(0, 0, canvas.width, canvas.height);
       ctx.drawImage(src, fx - span / 2, fy - span / 2, span, span, 0, 0, canvas.width, canvas.height);
       label.textContent = name + " x " + Math.floor(fx * data.loupe_step) + " y " + Math.floor(fy * data.loupe_step) +
-        (data.loupe_step > 1 ? " (every " + data.loupe_step + "th pixel)" : " (full resolution)");
+        (data.loupe_step > 1 ? " (every " + data.loupe_step + "th pixel" : " (full resolution") +
+        ", JPEG q" + data.loupe_quality + ")";
       loupe.style.left = (e.clientX + 20) + "px";
       loupe.style.top = (e.clientY - 120) + "px";
       loupe.hidden = false;
