@@ -51,10 +51,7 @@ const KNOWN_UPWARD: &[(&str, &str)] = &[];
 
 /// Top-level modules that are still in an import cycle, and submodules in a cycle inside a
 /// top-level module, written `top::a` (issue 15).
-const KNOWN_CYCLIC: &[&str] = &[
-    "raw::decode",
-    "raw::guard",
-];
+const KNOWN_CYCLIC: &[&str] = &[];
 
 /// `solve`'s files in the order of its chain (DESIGN.md): each may import only files before
 /// it. Shared leaves first (vector lanes, the light model, the noise model), then measurements

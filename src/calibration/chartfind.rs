@@ -8,9 +8,9 @@
 //! background scores worse. Coarse search on a 4-pixel lattice, then every pixel around the
 //! best, on the CFA cells (2x2 samples) summed over all lights.
 
-use crate::rig::{ChartDescription, ChartRect};
 use crate::error::{Error, Result};
 use crate::raw::Mosaic;
+use crate::rig::{ChartDescription, ChartRect};
 
 /// Summed-area tables of a cell image and of its squares.
 struct Integral {

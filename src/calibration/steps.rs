@@ -10,10 +10,8 @@ use serde::{Deserialize, Serialize};
 
 use super::bundle::{self, BundleIndex, Calibration, Parts};
 use super::camera::CameraCalibration;
-use crate::rig::Board;
 use super::files;
 use super::graychart::{self, ChartReport, Shading};
-use crate::rig::{ChartDescription, ChartRect};
 use super::lights::{self, LightFit};
 use super::table::{self, TablePose};
 use super::whitesheet::{self, SheetLight};
@@ -21,7 +19,9 @@ use crate::error::{Error, Result};
 use crate::plane::{Frames, GrayImage, Plane};
 use crate::progress::Progress;
 use crate::raw::Levels;
+use crate::rig::Board;
 use crate::rig::Rig;
+use crate::rig::{ChartDescription, ChartRect};
 use crate::solve::{GainGrid, NoiseModel};
 
 /// Reads a step's TOML result, naming the file in errors.

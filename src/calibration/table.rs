@@ -8,10 +8,10 @@ use nalgebra::{Matrix3, Rotation3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::camera::Intrinsics;
-use crate::rig::Board;
 use super::cv;
 use crate::error::{Error, Result};
 use crate::plane::{GrayImage, SensorWindow};
+use crate::rig::Board;
 use crate::rig::{Camera, Rig};
 
 /// Where the camera is in the table's world frame.

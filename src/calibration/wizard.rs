@@ -10,9 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use super::bundle::{self, Calibration};
 use super::camera::{self, CameraOptions, DetectedView};
-use crate::rig::Board;
 use super::graychart::{self, ChartReport, Shading};
-use crate::rig::{ChartDescription, ChartRect};
 use super::whitesheet::{self, FLATNESS_TOLERANCE_DEG};
 use super::{lights, table};
 use crate::error::{Error, Result};
@@ -20,7 +18,9 @@ use crate::fsutil::write_atomic;
 use crate::plane::{Frames, GrayImage, SensorWindow};
 use crate::progress::Progress;
 use crate::raw::Mosaic;
+use crate::rig::Board;
 use crate::rig::Rig;
+use crate::rig::{ChartDescription, ChartRect};
 use crate::solve::NoiseModel;
 
 pub const STATE_FILE: &str = "wizard-state.toml";

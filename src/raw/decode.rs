@@ -21,8 +21,7 @@ use serde::Serialize;
 use super::mosaic::{Mosaic, BLUE, GREEN, RED};
 use crate::error::{Error, Result};
 
-/// The largest image psscan will decode (samples); a header claiming more is corrupt.
-pub const MAX_SAMPLES: usize = 400_000_000;
+pub use super::guard::MAX_SAMPLES;
 
 /// What a RAW file says about how it was shot.
 #[derive(Clone, Debug, PartialEq, Serialize)]

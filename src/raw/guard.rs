@@ -7,9 +7,12 @@
 //! same structures rawler does (TIFF IFD chains, SubIFDs, the EXIF, GPS and interoperability
 //! IFDs, Nikon/Canon/Olympus/Sony/Panasonic maker notes, and the ISO-BMFF boxes of CR3 with the
 //! TIFF structures inside them) and refuses any entry, IFD or box that claims more bytes than
-//! the file holds, any IFD reached twice, and any image size beyond `decode::MAX_SAMPLES`.
+//! the file holds, any IFD reached twice, and any image size beyond `MAX_SAMPLES`.
 
 use std::collections::HashSet;
+
+/// The largest image psscan will decode (samples); a header claiming more is corrupt.
+pub const MAX_SAMPLES: usize = 400_000_000;
 
 /// TIFF tags whose values point at further IFDs.
 const SUB_IFD_TAGS: [u16; 4] = [330, 34665, 34853, 40965];
@@ -212,7 +215,7 @@ impl<'a> Tiff<'a> {
             }
         }
         if let [Some(w), Some(h)] = dims {
-            if w.saturating_mul(h) > super::decode::MAX_SAMPLES {
+            if w.saturating_mul(h) > MAX_SAMPLES {
                 return Err(format!(
                     "the IFD at byte {pos} announces a {w}x{h} image, larger than any camera's"
                 ));

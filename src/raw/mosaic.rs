@@ -9,7 +9,7 @@
 //!   in opposite directions); G's two sites are symmetric about it. For a Lambertian surface the
 //!   binned pixel measures exactly a surface whose scaled normal is the luminance-weighted sum
 //!   of its four sites' scaled normals, which is the ground truth psscan compares it with.
-//! - **Full resolution, shading-preserving demosaic** ([`develop_stack`]): every pixel keeps its
+//! - **Full resolution, shading-preserving demosaic** ([`develop_stack`](super::develop_stack)): every pixel keeps its
 //!   own sample, and its two missing channels are that sample times the pixel's colour ratios,
 //!   which come from the whole stack (they are the same under every light). Each pixel's
 //!   shading, which is what photometric stereo reads, is therefore its own, never its
@@ -25,7 +25,6 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::stack::develop_stack;
 use crate::error::{Error, Result};
 use crate::plane::{LightFrame, Mask, Plane, RgbPlanes, SensorWindow};
 
@@ -226,13 +225,6 @@ impl Mosaic {
             values,
             saturated,
         })
-    }
-
-    /// This frame developed on its own (at full resolution its colour ratios come from its own
-    /// neighbourhood; see [`develop_stack`]).
-    pub fn develop(&self, resolution: Resolution) -> Result<LightFrame> {
-        let mut frames = develop_stack(vec![self.linearize()?], None, None, resolution)?;
-        Ok(frames.pop().expect("one frame in, one out"))
     }
 }
 

@@ -5,7 +5,7 @@
 use rayon::prelude::*;
 
 use super::hue::colour_ratios;
-use super::mosaic::{bilinear, LinearMosaic, Resolution};
+use super::mosaic::{bilinear, LinearMosaic, Mosaic, Resolution};
 use super::shading::{site_albedos, ShadingField};
 use crate::error::{Error, Result};
 use crate::plane::{LightFrame, Mask, RgbPlanes};
@@ -195,6 +195,17 @@ fn bilinear_ratios(
             }
         });
     totals
+}
+
+/// `develop` lives beside `develop_stack`, which it calls, so that `mosaic` does not import
+/// the stack that builds on it.
+impl Mosaic {
+    /// This frame developed on its own (at full resolution its colour ratios come from its own
+    /// neighbourhood; see [`develop_stack`]).
+    pub fn develop(&self, resolution: Resolution) -> Result<LightFrame> {
+        let mut frames = develop_stack(vec![self.linearize()?], None, None, resolution)?;
+        Ok(frames.pop().expect("one frame in, one out"))
+    }
 }
 
 #[cfg(test)]
