@@ -174,6 +174,7 @@ impl SceneArgs {
     }
 }
 
+/// Runs the CLI; returns the process exit code.
 pub fn run() -> i32 {
     PROCESS_START.get_or_init(std::time::Instant::now);
     quiet_closed_pipe_panics();

@@ -222,8 +222,6 @@ impl SolveFlags {
     }
 }
 
-/// Runs the CLI; returns the process exit code.
-
 pub(super) fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let mut job = args.solve.job()?;
     job.force = args.force;
