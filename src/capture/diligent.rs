@@ -308,16 +308,31 @@ mod tests {
         }
     }
 
+    /// A DiLiGenT-layout folder's three text files for `n` lights (no images): the first
+    /// direction is the bunny set's first, so its value can be damaged by name.
+    fn write_text_files(dir: &Path, n: usize) {
+        let names: Vec<String> = (1..=n).map(|k| format!("{k:03}.png")).collect();
+        std::fs::write(dir.join(FILENAMES), names.join("\n")).unwrap();
+        let directions: Vec<String> = (0..n)
+            .map(|k| match k {
+                0 => "0.959493 0.134231 0.247710".to_string(),
+                _ => {
+                    let a = k as f64 * 0.7;
+                    format!("{:.6} {:.6} {:.6}", 0.4 * a.cos(), 0.4 * a.sin(), 0.916515)
+                }
+            })
+            .collect();
+        std::fs::write(dir.join(LIGHT_DIRECTIONS), directions.join("\n")).unwrap();
+        std::fs::write(dir.join(LIGHT_INTENSITIES), vec!["1 1 1"; n].join("\n")).unwrap();
+    }
+
     #[test]
     fn inconsistent_text_files_are_named() {
         let dir = tempfile::tempdir().unwrap();
-        let src = bunny("bunny_lambert_noshadow");
-        for name in [FILENAMES, LIGHT_DIRECTIONS, LIGHT_INTENSITIES] {
-            std::fs::copy(src.join(name), dir.path().join(name)).unwrap();
-        }
-        assert!(DiligentSet::open(dir.path()).is_ok());
+        write_text_files(dir.path(), 50);
+        let good = DiligentSet::open(dir.path()).unwrap();
 
-        let text = std::fs::read_to_string(src.join(LIGHT_DIRECTIONS)).unwrap();
+        let text = std::fs::read_to_string(dir.path().join(LIGHT_DIRECTIONS)).unwrap();
         let short: Vec<&str> = text.lines().take(49).collect();
         std::fs::write(dir.path().join(LIGHT_DIRECTIONS), short.join("\n")).unwrap();
         let err = DiligentSet::open(dir.path()).unwrap_err().to_string();
@@ -337,11 +352,9 @@ mod tests {
             "{err}"
         );
 
-        std::fs::write(dir.path().join(LIGHT_DIRECTIONS), &text).unwrap();
-        std::fs::write(dir.path().join(FILENAMES), "../001.png\n002.png\n003.png\n").unwrap();
         let set = DiligentSet {
             files: vec!["../001.png".into(); 3],
-            ..DiligentSet::open(&src).unwrap()
+            ..good
         };
         let err = set
             .load_frames(&crate::progress::Silent)
@@ -350,13 +363,39 @@ mod tests {
         assert!(err.contains("leaves the capture set"), "{err}");
     }
 
+    /// A MATLAB v5 file holding one uncompressed double array `Normal_gt` of size `dims`
+    /// (a reader check independent of the real sets; tests/cli_diligent_generated.rs writes
+    /// whole sets this way).
+    fn normal_mat(dims: [i32; 3]) -> Vec<u8> {
+        fn element(out: &mut Vec<u8>, kind: u32, payload: &[u8]) {
+            out.extend_from_slice(&kind.to_le_bytes());
+            out.extend_from_slice(&(payload.len() as u32).to_le_bytes());
+            out.extend_from_slice(payload);
+            out.resize(out.len().next_multiple_of(8), 0);
+        }
+        let count = dims.iter().product::<i32>() as usize;
+        let mut body = Vec::new();
+        element(&mut body, 6, &[6u8, 0, 0, 0, 0, 0, 0, 0]); // flags: double class
+        let dims: Vec<u8> = dims.iter().flat_map(|d| d.to_le_bytes()).collect();
+        element(&mut body, 5, &dims);
+        element(&mut body, 1, NORMAL_TRUTH_VARIABLE.as_bytes());
+        let values: Vec<u8> = (0..count).flat_map(|_| 0.5f64.to_le_bytes()).collect();
+        element(&mut body, 9, &values);
+        let mut file = b"MATLAB 5.0 MAT-file".to_vec();
+        file.resize(124, b' ');
+        file.extend_from_slice(&0x0100u16.to_le_bytes());
+        file.extend_from_slice(b"IM");
+        element(&mut file, 14, &body);
+        file
+    }
+
     #[test]
     fn a_broken_truth_file_is_named() {
         assert!(read_normal_mat(b"MATLAB 5.0 MAT-file, garbage", 4, 4).is_err());
-        let dir = bunny("bunny_lambert_noshadow");
-        let bytes = std::fs::read(dir.join(NORMAL_TRUTH)).unwrap();
-        let err = read_normal_mat(&bytes, 128, 256).unwrap_err();
-        assert!(err.contains("[256, 128, 3]"), "{err}");
-        assert!(read_normal_mat(&bytes[..bytes.len() / 3], 256, 256).is_err());
+        let bytes = normal_mat([16, 16, 3]);
+        assert!(read_normal_mat(&bytes, 16, 16).is_ok());
+        let err = read_normal_mat(&bytes, 8, 16).unwrap_err();
+        assert!(err.contains("[16, 8, 3]"), "{err}");
+        assert!(read_normal_mat(&bytes[..bytes.len() / 3], 16, 16).is_err());
     }
 }
