@@ -58,27 +58,28 @@ impl Roi {
 
 /// The part of `p` inside `roi` (which the caller has checked against `p`'s size).
 fn crop_plane(p: &Plane, roi: &Roi) -> Plane {
-    let mut data = Vec::with_capacity(roi.width * roi.height);
-    for y in roi.y..roi.y + roi.height {
-        data.extend_from_slice(&p.data[y * p.width + roi.x..y * p.width + roi.x + roi.width]);
-    }
     Plane {
         width: roi.width,
         height: roi.height,
-        data,
+        data: crop_rows(&p.data, p.width, roi),
     }
 }
 
 fn crop_mask(m: &Mask, roi: &Roi) -> Mask {
-    let mut data = Vec::with_capacity(roi.width * roi.height);
-    for y in roi.y..roi.y + roi.height {
-        data.extend_from_slice(&m.data[y * m.width + roi.x..y * m.width + roi.x + roi.width]);
-    }
     Mask {
         width: roi.width,
         height: roi.height,
-        data,
+        data: crop_rows(&m.data, m.width, roi),
     }
+}
+
+/// The samples of a row-major image `width` wide that lie inside `roi`.
+fn crop_rows<T: Copy>(data: &[T], width: usize, roi: &Roi) -> Vec<T> {
+    let mut out = Vec::with_capacity(roi.width * roi.height);
+    for y in roi.y..roi.y + roi.height {
+        out.extend_from_slice(&data[y * width + roi.x..y * width + roi.x + roi.width]);
+    }
+    out
 }
 
 /// The frames inside `roi`, with the window moved so each pixel keeps its sensor position.
