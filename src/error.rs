@@ -3,13 +3,18 @@
 
 use std::path::{Path, PathBuf};
 
+/// psscan's result: `Ok`, or an [`Error`] that says what went wrong.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
+/// Everything that can go wrong in psscan; the text names the file, device or setting.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
+    /// A file or folder that cannot be read, written or created.
     #[error("{path}: {source}")]
     Io {
+        /// The file or folder.
         path: PathBuf,
+        /// What the system reported.
         #[source]
         source: std::io::Error,
     },
@@ -18,22 +23,65 @@ pub enum Error {
     /// names the offending key (for example `leds[3].position_m`).
     #[error("{path}: {field}: {message}")]
     Config {
+        /// The file.
         path: PathBuf,
+        /// The offending key.
         field: String,
+        /// What is wrong with it.
         message: String,
     },
 
     /// An image file that cannot be read, decoded or written.
     #[error("{path}: {message}")]
-    Image { path: PathBuf, message: String },
+    Image {
+        /// The image file.
+        path: PathBuf,
+        /// What is wrong with it.
+        message: String,
+    },
 
     /// A capture set that is incomplete or inconsistent.
     #[error("capture set {dir}: {message}")]
-    CaptureSet { dir: PathBuf, message: String },
+    CaptureSet {
+        /// The capture set's folder.
+        dir: PathBuf,
+        /// What is missing or inconsistent.
+        message: String,
+    },
 
-    /// An output that already exists and would be overwritten.
-    #[error("{path} already exists; pass --force to overwrite it")]
-    Exists { path: PathBuf },
+    /// An output that already exists and would be overwritten; the caller may choose to
+    /// replace it (the CLI names `--force`).
+    #[error("{path} already exists")]
+    Exists {
+        /// The existing output (a file or a folder).
+        path: PathBuf,
+    },
+
+    /// A capture folder already holding a set that this session may not simply write into;
+    /// `state` says what it holds, so the caller can offer to complete or replace it.
+    #[error("capture set {dir}: {state}")]
+    SetOccupied {
+        /// The capture set's folder.
+        dir: PathBuf,
+        /// What the folder holds.
+        state: Occupied,
+    },
+
+    /// A capture that stopped part-way: the frames shot so far are kept in `dir`, so
+    /// running the same capture again with resume on completes the set.
+    #[error("{source}")]
+    Resumable {
+        /// The capture set's folder.
+        dir: PathBuf,
+        /// Why the capture stopped (its text says what the LEDs and the set were left as).
+        #[source]
+        source: Box<Error>,
+    },
+
+    /// Settings that cannot be used together; the conflict says which, so a caller can name
+    /// its own spelling of them (the CLI names the flags).
+    #[error("{0}")]
+    Incompatible(Conflict),
 
     /// Inputs that do not fit together (sizes, light counts, options).
     #[error("{0}")]
@@ -46,7 +94,12 @@ pub enum Error {
     /// A device (LED controller, camera, firmware emulator) that failed, answered wrongly or
     /// went away; `device` names it (for example `LED controller on /dev/ttyACM0`).
     #[error("{device}: {message}")]
-    Device { device: String, message: String },
+    Device {
+        /// The device, for example `LED controller on /dev/ttyACM0`.
+        device: String,
+        /// What went wrong.
+        message: String,
+    },
 
     /// The LED controller's link failed; the kind says how, so a caller can act on it.
     #[error("{device}: {source}")]
@@ -71,6 +124,96 @@ pub enum Error {
     /// The operator stopped the work (Ctrl-C); the message says what state was left behind.
     #[error("interrupted: {0}")]
     Interrupted(String),
+}
+
+/// What a capture folder holds that a new session may not simply write into.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Occupied {
+    /// A complete set: nothing is left to shoot.
+    Complete,
+    /// An unfinished set, `kept` of `total` frames shot (the dark frame counts as one).
+    Unfinished {
+        /// Frames in the set's manifest.
+        kept: usize,
+        /// Frames a complete set has: one per LED and the dark frame.
+        total: usize,
+    },
+    /// An unfinished set started with another rig than this session's.
+    OtherRig {
+        /// The rig stored in the set.
+        set_rig: String,
+        /// This session's rig (same name or not, its values differ).
+        session_rig: String,
+    },
+    /// An unfinished set whose frames differ from what this camera gives.
+    OtherFrames {
+        /// The set's frames: encoding and size, e.g. `dng 640x480`.
+        set_frames: String,
+        /// This camera's frames, in the same form.
+        camera_frames: String,
+    },
+}
+
+impl std::fmt::Display for Occupied {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Occupied::Complete => write!(
+                f,
+                "already holds a complete capture set, so resuming it has nothing left to shoot"
+            ),
+            Occupied::Unfinished { kept, total } => {
+                write!(f, "holds an unfinished capture ({kept} of {total} frames)")
+            }
+            Occupied::OtherRig {
+                set_rig,
+                session_rig,
+            } => write!(
+                f,
+                "was started with rig \"{set_rig}\" (stored in the set), this session uses rig \
+                 \"{session_rig}\" with other values"
+            ),
+            Occupied::OtherFrames {
+                set_frames,
+                camera_frames,
+            } => write!(
+                f,
+                "was started with other frames ({set_frames}), this camera gives {camera_frames}"
+            ),
+        }
+    }
+}
+
+/// Two settings that cannot be used together.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Conflict {
+    /// The robust estimator with a streaming kernel (f32 precision or a tile tolerance).
+    #[error(
+        "the robust estimator fits every pixel with the exact kernel, not the streaming one \
+         (f32 precision or a tile tolerance)"
+    )]
+    RobustStreaming,
+    /// The SVD method with a streaming kernel (f32 precision or a tile tolerance).
+    #[error("the SVD method is per pixel in f64 only, not in the streaming kernel")]
+    SvdStreaming,
+    /// A camera calibration without the table pose solved with it.
+    #[error(
+        "a camera calibration needs the table pose too: the camera's pose over the table \
+         comes from the table step"
+    )]
+    CameraWithoutTable,
+    /// A table pose without the camera calibration it was solved with.
+    #[error(
+        "a table pose needs the camera calibration too: the table's pose was solved with the \
+         camera step's intrinsics"
+    )]
+    TableWithoutCamera,
+    /// A crop, binning or background mask asked of a DiLiGenT set (they apply to psscan
+    /// capture sets, whose frames are RAW).
+    #[error("{}: crops, binning and background masks apply to psscan capture sets, not DiLiGenT sets", dir.display())]
+    RegionOnDiligent {
+        /// The DiLiGenT folder.
+        dir: PathBuf,
+    },
 }
 
 /// How one request to the LED controller failed.
@@ -163,6 +306,7 @@ impl PortProblem {
 }
 
 impl Error {
+    /// An I/O failure on `path`.
     pub fn io(path: impl AsRef<Path>, source: std::io::Error) -> Self {
         Error::Io {
             path: path.as_ref().to_path_buf(),
@@ -170,6 +314,7 @@ impl Error {
         }
     }
 
+    /// An image file at `path` that cannot be read, decoded or written.
     pub fn image(path: impl AsRef<Path>, message: impl std::fmt::Display) -> Self {
         Error::Image {
             path: path.as_ref().to_path_buf(),
@@ -177,6 +322,7 @@ impl Error {
         }
     }
 
+    /// A configuration file at `path` whose key `field` is wrong.
     pub fn config(
         path: impl AsRef<Path>,
         field: impl Into<String>,
@@ -189,6 +335,7 @@ impl Error {
         }
     }
 
+    /// A device (named as in [`Error::Device`]) that failed.
     pub fn device(device: impl Into<String>, message: impl Into<String>) -> Self {
         Error::Device {
             device: device.into(),
@@ -204,10 +351,21 @@ impl Error {
         }
     }
 
+    /// A capture set in `dir` that is incomplete or inconsistent.
     pub fn capture_set(dir: impl AsRef<Path>, message: impl Into<String>) -> Self {
         Error::CaptureSet {
             dir: dir.as_ref().to_path_buf(),
             message: message.into(),
+        }
+    }
+
+    /// Whether the operator stopped the work: this error or one it wraps is
+    /// [`Error::Interrupted`].
+    pub fn is_interrupted(&self) -> bool {
+        match self {
+            Error::Interrupted(_) => true,
+            Error::Resumable { source, .. } => source.is_interrupted(),
+            _ => false,
         }
     }
 }

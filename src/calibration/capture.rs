@@ -214,15 +214,7 @@ impl Captured {
             &options,
             &self.interrupt,
             progress,
-        )
-        .map_err(|e| match e {
-            // The sequencer's advice is `psscan capture --resume`; here the wizard resumes.
-            Error::Interrupted(m) => Error::Interrupted(m.replace(
-                "run the same command with --resume to complete the set",
-                "run the same psscan calibrate command to resume",
-            )),
-            other => other,
-        })?;
+        )?;
         CaptureSet::open(&dir, None)
     }
 }

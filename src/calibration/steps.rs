@@ -15,7 +15,7 @@ use super::graychart::{self, ChartReport, Shading};
 use super::lights::{self, LightFit};
 use super::table::{self, TablePose};
 use super::whitesheet::{self, SheetLight};
-use crate::error::{Error, Result};
+use crate::error::{Conflict, Error, Result};
 use crate::plane::{Frames, GrayImage, Plane};
 use crate::progress::Progress;
 use crate::raw::Levels;
@@ -135,16 +135,8 @@ pub fn compose_rig(
     match (camera, table) {
         (Some(c), Some(t)) => files::rig_with_camera(rig, c, t),
         (None, None) => Ok(rig.clone()),
-        (Some(_), None) => Err(Error::Invalid(
-            "--camera needs --table too: the camera's pose over the table comes from the table \
-             step"
-                .into(),
-        )),
-        (None, Some(_)) => Err(Error::Invalid(
-            "--table needs --camera too: the table's pose was solved with the camera step's \
-             intrinsics"
-                .into(),
-        )),
+        (Some(_), None) => Err(Error::Incompatible(Conflict::CameraWithoutTable)),
+        (None, Some(_)) => Err(Error::Incompatible(Conflict::TableWithoutCamera)),
     }
 }
 

@@ -17,7 +17,7 @@ use super::interrupt::Interrupt;
 use super::lights::{FirmwareInfo, Keepalive, LightState, SharedLights};
 use super::manifest::{CameraSettings, FrameKind, SyntheticInfo, MANIFEST_FILE};
 use super::set::{light_file_name, CaptureSet, CaptureSetWriter, DroppedFrame};
-use crate::error::{Error, Result};
+use crate::error::{Error, Occupied, Result};
 use crate::progress::Progress;
 use crate::rig::Rig;
 
@@ -249,15 +249,13 @@ fn open_set(
     if exists && options.resume && !options.force {
         let set = CaptureSet::open(dir, None)?;
         if set.rig != *rig {
-            return Err(Error::capture_set(
-                dir,
-                format!(
-                    "was started with rig \"{}\" (stored in the set), this session uses rig \
-                     \"{}\" with other values; resume with the set's rig, or pass --force to \
-                     start over",
-                    set.rig.name, rig.name
-                ),
-            ));
+            return Err(Error::SetOccupied {
+                dir: dir.to_path_buf(),
+                state: Occupied::OtherRig {
+                    set_rig: set.rig.name.clone(),
+                    session_rig: rig.name.clone(),
+                },
+            });
         }
         let had = &set.manifest.image;
         if had.encoding != image.encoding
@@ -266,14 +264,13 @@ fn open_set(
             || had.window != image.window
             || had.exposure != image.exposure
         {
-            return Err(Error::capture_set(
-                dir,
-                format!(
-                    "was started with other frames ({} {}x{}), this camera gives {} {}x{}; \
-                     resume with the same camera settings, or pass --force to start over",
-                    had.encoding, had.width, had.height, image.encoding, image.width, image.height
-                ),
-            ));
+            return Err(Error::SetOccupied {
+                dir: dir.to_path_buf(),
+                state: Occupied::OtherFrames {
+                    set_frames: format!("{} {}x{}", had.encoding, had.width, had.height),
+                    camera_frames: format!("{} {}x{}", image.encoding, image.width, image.height),
+                },
+            });
         }
         remove_scratch_files(dir);
         return CaptureSetWriter::resume(dir);
@@ -282,23 +279,17 @@ fn open_set(
         let set = CaptureSet::open(dir, None)?;
         let complete = set.manifest.dark_frame().is_some()
             && (0..set.rig.leds.len()).all(|k| set.manifest.light_frame(k).is_some());
-        return Err(if complete {
-            Error::capture_set(
-                dir,
-                "already holds a complete capture set, so --resume has nothing left to shoot; \
-                 pass --force to shoot it again (its frames are replaced), or choose another \
-                 --out",
-            )
+        let state = if complete {
+            Occupied::Complete
         } else {
-            Error::capture_set(
-                dir,
-                format!(
-                    "holds an unfinished capture ({} of {} frames); pass --resume to complete \
-                     it, or --force to start over",
-                    set.manifest.frames.len(),
-                    set.rig.leds.len() + 1
-                ),
-            )
+            Occupied::Unfinished {
+                kept: set.manifest.frames.len(),
+                total: set.rig.leds.len() + 1,
+            }
+        };
+        return Err(Error::SetOccupied {
+            dir: dir.to_path_buf(),
+            state,
         });
     }
     // A new set: the folder must be new, empty or psscan's own (an old set, with --force);
@@ -431,19 +422,20 @@ fn stopped(writer: &CaptureSetWriter, what: &str, cause: Error, lights: &SharedL
         format!("{} frames kept ({})", kept.len(), kept.join(", "))
     };
     let dir = writer.dir().display();
-    if let Error::Interrupted(_) = cause {
-        return Error::Interrupted(format!(
-            "capture into {dir} stopped at {what}; {leds}; {kept}; run the same command with \
-             --resume to complete the set"
-        ));
+    let stopped = if let Error::Interrupted(_) = cause {
+        Error::Interrupted(format!(
+            "capture into {dir} stopped at {what}; {leds}; {kept}"
+        ))
+    } else {
+        Error::capture_set(
+            writer.dir(),
+            format!("capture stopped at {what}: {cause}; {leds}; {kept}"),
+        )
+    };
+    Error::Resumable {
+        dir: writer.dir().to_path_buf(),
+        source: Box::new(stopped),
     }
-    Error::capture_set(
-        writer.dir(),
-        format!(
-            "capture stopped at {what}: {cause}; {leds}; {kept}; run the same command with \
-             --resume to complete the set"
-        ),
-    )
 }
 
 #[cfg(test)]

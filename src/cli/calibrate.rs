@@ -279,7 +279,10 @@ fn wizard(args: &WizardArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
     let mut source = open_source(args, &hand, board, &dir)?;
     let result = walk(&mut wiz, &mut source, resumed, args, json, bars);
     if let Err(e) = &result {
-        if let Some(psscan::Error::Interrupted(_)) = e.downcast_ref::<psscan::Error>() {
+        let interrupted = e
+            .downcast_ref::<psscan::Error>()
+            .is_some_and(psscan::Error::is_interrupted);
+        if interrupted {
             println!(
                 "stopped; the state is saved in {}: run the same command to resume",
                 dir.display()

@@ -9,6 +9,7 @@ mod calibrate_steps;
 mod capture;
 mod derive;
 mod eval;
+mod hints;
 mod outcome;
 mod progress;
 mod report;
@@ -232,6 +233,15 @@ impl Command {
             Command::Report(_) => "`psscan report`",
             Command::Derive(_) => "`psscan derive`",
             Command::Eval(_) => "`psscan eval`",
+        }
+    }
+
+    /// How a capture this command stopped is completed: the calibration wizard resumes by
+    /// itself, `psscan capture` with `--resume`.
+    fn resume(&self) -> hints::Resume {
+        match self {
+            Command::Calibrate(_) => hints::Resume::SameCommand,
+            _ => hints::Resume::WithFlag,
         }
     }
 }

@@ -3,18 +3,25 @@
 
 use std::sync::atomic::Ordering;
 
-use super::{print_json, signals, Cli, JSON_PRINTED};
+use super::{hints, print_json, signals, Cli, JSON_PRINTED};
 
 /// Reports a command's outcome (the error on stderr, and as JSON with `--json`); its exit code.
 pub(super) fn exit_code(cli: &Cli, outcome: anyhow::Result<()>) -> i32 {
     match outcome {
         Ok(()) => 0,
         Err(err) => {
-            let message = error_text(&err);
+            let mut message = error_text(&err);
+            if let Some(hint) = hints::for_chain(&err, cli.command.resume()) {
+                message = format!("{message}; {hint}");
+            }
             // 130 / 143: stopped by SIGINT / SIGTERM, as shells report them.
-            let code = match err.downcast_ref::<psscan::Error>() {
-                Some(psscan::Error::Interrupted(_)) => signals::interrupted_exit_code(),
-                _ => 1,
+            let interrupted = err
+                .downcast_ref::<psscan::Error>()
+                .is_some_and(psscan::Error::is_interrupted);
+            let code = if interrupted {
+                signals::interrupted_exit_code()
+            } else {
+                1
             };
             eprintln!("psscan: error: {message}");
             // A script reading --json gets the failure on stdout too, unless the command

@@ -1,6 +1,7 @@
 //! `psscan solve`: its arguments (shared with the demo and batches), and the human summaries
 //! of a solve and of a batch.
 
+use super::hints::{with_hint, Resume};
 use super::*;
 
 #[derive(Args)]
@@ -250,7 +251,13 @@ pub(super) fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result
     let options = BatchOptions {
         parallel_sets: args.parallel_sets,
     };
-    let summary = sets::solve_sets(&args.sets, &args.out, &job, options, bars);
+    let mut summary = sets::solve_sets(&args.sets, &args.out, &job, options, bars);
+    // The library names what failed; the flag that gets past it is the CLI's to name.
+    for set in &mut summary.sets {
+        if let (Some(text), Some(failure)) = (&mut set.error, &set.failure) {
+            *text = with_hint(std::mem::take(text), failure, Resume::WithFlag);
+        }
+    }
     if json {
         print_json(&summary);
     } else {

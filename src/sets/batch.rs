@@ -5,7 +5,7 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use serde::Serialize;
@@ -47,6 +47,10 @@ pub struct SetOutcome {
     pub status: &'static str,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+    /// The failure behind `error`, for a caller that acts on its kind (the CLI adds the flag
+    /// that gets past it); `None` for failures found before the set was opened.
+    #[serde(skip)]
+    pub failure: Option<Arc<Error>>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub summary: Option<SetSummary>,
 }
@@ -168,7 +172,15 @@ pub fn solve_sets(
         kind,
         status: "failed",
         error: Some(error),
+        failure: None,
         summary: None,
+    };
+    let failed_with = |set: &Path, out: PathBuf, kind, error: Error| {
+        let text = error.to_string();
+        SetOutcome {
+            failure: Some(Arc::new(error)),
+            ..failed(set, out, kind, text)
+        }
     };
     if sets.len() > 1 {
         if let Err(e) = create_dir_all(out) {
@@ -182,15 +194,13 @@ pub fn solve_sets(
         }
     }
     for (i, (set, dir)) in sets.iter().zip(outs).enumerate() {
-        let planned_set = dir
-            .map_err(|m| m.to_string())
-            .and_then(|dir| plan(set, job).map(|p| (dir, p)).map_err(|e| e.to_string()));
-        match planned_set {
-            Ok((dir, (kind, units))) => planned.push((i, dir, kind, units)),
-            Err(message) => {
-                let dir = out.join(set_name(set).unwrap_or_default());
-                outcomes[i] = Some(failed(set, dir, None, message));
-            }
+        let fallback = || out.join(set_name(set).unwrap_or_default());
+        match dir {
+            Err(message) => outcomes[i] = Some(failed(set, fallback(), None, message)),
+            Ok(dir) => match plan(set, job) {
+                Ok((kind, units)) => planned.push((i, dir, kind, units)),
+                Err(e) => outcomes[i] = Some(failed_with(set, fallback(), None, e)),
+            },
         }
     }
 
@@ -219,9 +229,10 @@ pub fn solve_sets(
                                 kind: Some(*kind),
                                 status: "solved",
                                 error: None,
+                                failure: None,
                                 summary: Some(SetSummary::of(&report, dir)),
                             },
-                            Err(e) => failed(&sets[*i], dir.clone(), Some(*kind), e.to_string()),
+                            Err(e) => failed_with(&sets[*i], dir.clone(), Some(*kind), e),
                         };
                     budget.finish();
                     results.lock().unwrap().push((*i, outcome));

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use super::{set_kind, SetKind, SetSource, SolveJob, Truth};
 use crate::capture::diligent::{self, DiligentSet};
-use crate::error::{Error, Result};
+use crate::error::{Conflict, Error, Result};
 use crate::eval;
 use crate::maps::report::{LightRecord, Mean};
 use crate::maps::Report;
@@ -31,10 +31,9 @@ impl DiligentSource {
     /// psscan capture sets only and are refused here by name.
     pub fn open(dir: &Path, job: &SolveJob) -> Result<DiligentSource> {
         if !job.region.is_full() {
-            return Err(Error::Unsupported(format!(
-                "{}: --roi, --bin and --background apply to psscan capture sets, not DiLiGenT sets",
-                dir.display()
-            )));
+            return Err(Error::Incompatible(Conflict::RegionOnDiligent {
+                dir: dir.to_path_buf(),
+            }));
         }
         if job.develop.resolution != Resolution::Full {
             return Err(Error::Unsupported(format!(

@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use super::lights::LightModel;
 use super::sheen::SheenModel;
-use crate::error::{Error, Result};
+use crate::error::{Conflict, Error, Result};
 
 /// How each pixel's least-squares problem is solved.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
@@ -207,18 +207,10 @@ impl KernelChoice {
         let estimator = match estimator {
             Estimator::LeastSquares => StreamingEstimator::LeastSquares,
             Estimator::Adaptive => StreamingEstimator::Adaptive,
-            Estimator::Robust => return Err(Error::Invalid(
-                "the robust estimator fits every pixel with the exact kernel: drop --precision \
-                     f32 and --tile-tolerance, or use --estimator adaptive (the streaming least \
-                     squares, the robust fit only where the residual asks for it)"
-                    .into(),
-            )),
+            Estimator::Robust => return Err(Error::Incompatible(Conflict::RobustStreaming)),
         };
         if method == Method::Svd {
-            return Err(Error::Invalid(
-                "the SVD method is per pixel in f64 only: drop --precision f32 and --tile-tolerance"
-                    .into(),
-            ));
+            return Err(Error::Incompatible(Conflict::SvdStreaming));
         }
         Ok(KernelChoice::Streaming(Streaming {
             precision,

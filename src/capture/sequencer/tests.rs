@@ -2,6 +2,7 @@
 
 use super::*;
 use crate::capture::lights::{MockFault, MockLights};
+use crate::error::Occupied;
 use crate::progress::Silent;
 use crate::sim::SimCamera;
 use crate::synth::SynthSpec;
@@ -93,8 +94,17 @@ fn a_mock_session_shoots_dark_then_each_led_and_checks_state() {
         &Interrupt::new(),
         &Silent,
     );
-    let err = again.unwrap_err().to_string();
-    assert!(err.contains("--force") && err.contains("--resume"), "{err}");
+    let err = again.unwrap_err();
+    assert!(
+        matches!(
+            err,
+            Error::SetOccupied {
+                state: Occupied::Complete,
+                ..
+            }
+        ),
+        "{err}"
+    );
     let resumed = run_capture(
         dir.path(),
         &rig,
@@ -132,16 +142,14 @@ fn a_failing_camera_keeps_earlier_frames_and_resume_reshoots_the_rest() {
         &Interrupt::new(),
         &Silent,
     )
-    .unwrap_err()
-    .to_string();
+    .unwrap_err();
+    assert!(matches!(err, Error::Resumable { .. }), "{err}");
+    let err = err.to_string();
     assert!(
         err.contains("LED 3") && err.contains("shutter jammed"),
         "{err}"
     );
-    assert!(
-        err.contains("all LEDs are off") && err.contains("--resume"),
-        "{err}"
-    );
+    assert!(err.contains("all LEDs are off"), "{err}");
     assert!(probe.lit().is_empty());
     let set = CaptureSet::open(dir.path(), None).unwrap();
     assert_eq!(set.manifest.frames.len(), 4);
@@ -155,9 +163,17 @@ fn a_failing_camera_keeps_earlier_frames_and_resume_reshoots_the_rest() {
         &Interrupt::new(),
         &Silent,
     )
-    .unwrap_err()
-    .to_string();
-    assert!(err.contains("--resume"), "{err}");
+    .unwrap_err();
+    assert!(
+        matches!(
+            err,
+            Error::SetOccupied {
+                state: Occupied::Unfinished { kept: 4, .. },
+                ..
+            }
+        ),
+        "{err}"
+    );
 
     // Damage a kept frame: resume re-shoots it too.
     std::fs::write(dir.path().join("L01.png"), b"garbage").unwrap();
@@ -207,9 +223,10 @@ fn a_controller_that_vanishes_or_refuses_stops_the_session_clearly() {
             &Interrupt::new(),
             &Silent,
         )
-        .unwrap_err()
-        .to_string();
-        assert!(err.contains(needle) && err.contains("--resume"), "{err}");
+        .unwrap_err();
+        assert!(matches!(err, Error::Resumable { .. }), "{err}");
+        let err = err.to_string();
+        assert!(err.contains(needle), "{err}");
         // A vanished controller cannot be told; its silence timeout switches off.
         std::thread::sleep(Duration::from_millis(150));
         assert!(probe.lit().is_empty(), "{err}");
@@ -266,8 +283,8 @@ fn an_interrupt_stops_before_the_next_frame_and_keeps_the_set_resumable() {
         &Silent,
     )
     .unwrap_err();
-    assert!(matches!(err, Error::Interrupted(_)), "{err}");
-    assert!(err.to_string().contains("--resume"));
+    assert!(matches!(err, Error::Resumable { .. }), "{err}");
+    assert!(err.is_interrupted(), "{err}");
     assert!(probe.lit().is_empty());
     let set = CaptureSet::open(dir.path(), None).unwrap();
     assert_eq!(set.manifest.frames.len(), 5);

@@ -81,9 +81,8 @@ fn an_existing_set_is_not_overwritten_without_force() {
         false,
     )
     .err()
-    .unwrap()
-    .to_string();
-    assert!(err.contains("--force"), "{err}");
+    .unwrap();
+    assert!(matches!(err, Error::Exists { .. }), "{err}");
     assert!(CaptureSetWriter::create(
         dir.path(),
         &rig3(),
