@@ -78,6 +78,21 @@ pub enum Error {
         source: Box<Error>,
     },
 
+    /// No LED controller port could be chosen automatically; the kind says why, so a caller
+    /// can ask for the port by its own means (the CLI names `--port PATH`).
+    #[error("{0}")]
+    NoPort(PortSearch),
+
+    /// A capture set's calibration bundle that cannot be used as the set cites it; the kind
+    /// says why, so a caller can offer another bundle, none, or to accept the mismatch.
+    #[error("capture set {dir}: {problem}")]
+    Bundle {
+        /// The capture set's folder.
+        dir: PathBuf,
+        /// What is wrong with the bundle.
+        problem: BundleProblem,
+    },
+
     /// Settings that cannot be used together; the conflict says which, so a caller can name
     /// its own spelling of them (the CLI names the flags).
     #[error("{0}")]
@@ -181,6 +196,57 @@ impl std::fmt::Display for Occupied {
             ),
         }
     }
+}
+
+/// Why no LED controller port was chosen automatically.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum PortSearch {
+    /// The machine cannot list its serial ports (no sysfs, as in some containers).
+    #[error("cannot list serial ports: /sys/class/tty is missing (no sysfs)")]
+    NoSysfs,
+    /// Several boards of the same rank could be the controller.
+    #[error("several boards could be the LED controller ({candidates})")]
+    Several {
+        /// The candidates' ports and board names, comma-separated.
+        candidates: String,
+    },
+    /// No Arduino-like board among the ports.
+    #[error("no Arduino found ({seen})")]
+    NoArduino {
+        /// The ports seen, in words (`no serial ports at all`, `ports seen: ...`).
+        seen: String,
+    },
+}
+
+/// Why a capture set's calibration bundle cannot be used as cited.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum BundleProblem {
+    /// The bundle the set cites is not where the set says.
+    #[error("cites calibration bundle {id} at {}, which is not there", path.display())]
+    Missing {
+        /// The cited bundle's id.
+        id: String,
+        /// Where the set says it is.
+        path: PathBuf,
+    },
+    /// The bundle given is not the one the set was captured with.
+    #[error(
+        "was captured with calibration bundle {cited_id} (sha256 {cited_sha256}), but the \
+         bundle at {} is {id} (sha256 {sha256})",
+        path.display()
+    )]
+    Mismatch {
+        /// The id the set cites.
+        cited_id: String,
+        /// The hash the set cites.
+        cited_sha256: String,
+        /// The bundle given.
+        path: PathBuf,
+        /// Its id.
+        id: String,
+        /// Its hash.
+        sha256: String,
+    },
 }
 
 /// Two settings that cannot be used together.

@@ -7,12 +7,16 @@ use crate::error::{Error, Result};
 /// One channel of an image: `width * height` samples, row-major, row 0 at the top.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Plane {
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
+    /// The samples, `width * height` of them, row after row.
     pub data: Vec<f32>,
 }
 
 impl Plane {
+    /// A `width x height` plane with every sample `fill`.
     pub fn new(width: usize, height: usize, fill: f32) -> Self {
         Plane {
             width,
@@ -37,19 +41,23 @@ impl Plane {
         })
     }
 
+    /// The sample at column `x`, row `y` (panics outside the plane).
     #[inline]
     pub fn get(&self, x: usize, y: usize) -> f32 {
         self.data[y * self.width + x]
     }
 
+    /// Row `y`, left to right.
     pub fn row(&self, y: usize) -> &[f32] {
         &self.data[y * self.width..(y + 1) * self.width]
     }
 
+    /// The number of samples, `width * height`.
     pub fn len(&self) -> usize {
         self.data.len()
     }
 
+    /// Whether the plane has no samples.
     pub fn is_empty(&self) -> bool {
         self.data.is_empty()
     }
@@ -58,12 +66,16 @@ impl Plane {
 /// A per-pixel yes/no layer (for example "saturated in this light").
 #[derive(Clone, Debug, PartialEq)]
 pub struct Mask {
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
+    /// One flag per pixel, row-major like [`Plane::data`].
     pub data: Vec<bool>,
 }
 
 impl Mask {
+    /// A `width x height` mask with every pixel `fill`.
     pub fn new(width: usize, height: usize, fill: bool) -> Self {
         Mask {
             width,
@@ -72,6 +84,7 @@ impl Mask {
         }
     }
 
+    /// The number of pixels set.
     pub fn count(&self) -> usize {
         self.data.iter().filter(|&&b| b).count()
     }
@@ -83,12 +96,16 @@ impl Mask {
 /// offset; a coarse synthetic preview may sample every n-th sensor pixel.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SensorWindow {
+    /// Sensor column of frame pixel (0, 0)'s centre, in sensor pixels.
     pub x0: f64,
+    /// Sensor row of frame pixel (0, 0)'s centre, in sensor pixels.
     pub y0: f64,
+    /// Sensor pixels from one frame pixel to the next (1: every pixel, 2: 2x2 binned).
     pub step: f64,
 }
 
 impl SensorWindow {
+    /// The whole sensor, pixel for pixel.
     pub const FULL: SensorWindow = SensorWindow {
         x0: 0.0,
         y0: 0.0,
@@ -113,6 +130,7 @@ impl SensorWindow {
         }
     }
 
+    /// The sensor coordinates (column, row) of frame position `(u, v)`.
     #[inline]
     pub fn to_sensor(&self, u: f64, v: f64) -> (f64, f64) {
         (self.x0 + self.step * u, self.y0 + self.step * v)
@@ -122,8 +140,11 @@ impl SensorWindow {
 /// An 8-bit grayscale photograph (chessboard views): row-major, one byte per pixel.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct GrayImage {
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
+    /// One byte per pixel, row-major, 0 black to 255 white.
     pub data: Vec<u8>,
 }
 
@@ -164,12 +185,16 @@ impl GrayImage {
 /// level after black-level subtraction.
 #[derive(Clone, Debug)]
 pub struct RgbPlanes {
+    /// Red.
     pub r: Plane,
+    /// Green.
     pub g: Plane,
+    /// Blue.
     pub b: Plane,
 }
 
 impl RgbPlanes {
+    /// Three `width x height` planes of zeros.
     pub fn new(width: usize, height: usize) -> Self {
         RgbPlanes {
             r: Plane::new(width, height, 0.0),
@@ -178,14 +203,17 @@ impl RgbPlanes {
         }
     }
 
+    /// The planes in R, G, B order.
     pub fn channels(&self) -> [&Plane; 3] {
         [&self.r, &self.g, &self.b]
     }
 
+    /// Width in pixels (all three planes share it).
     pub fn width(&self) -> usize {
         self.r.width
     }
 
+    /// Height in pixels (all three planes share it).
     pub fn height(&self) -> usize {
         self.r.height
     }
@@ -195,7 +223,9 @@ impl RgbPlanes {
 /// it, which pixels were saturated (such a pixel carries no usable value for this light).
 #[derive(Clone, Debug)]
 pub struct LightFrame {
+    /// The linear colour planes.
     pub rgb: RgbPlanes,
+    /// Pixels clipped at the sensor's white level in this light, when the decoder knows.
     pub saturated: Option<Mask>,
 }
 
@@ -203,9 +233,13 @@ pub struct LightFrame {
 /// sensor (the solver needs each pixel's position on the table).
 #[derive(Clone, Debug)]
 pub struct Frames {
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
+    /// Where the frames' pixels sit on the sensor.
     pub window: SensorWindow,
+    /// One frame per light, in the rig's LED order.
     pub lights: Vec<LightFrame>,
 }
 

@@ -18,6 +18,7 @@ pub const OTHER: &str = "other";
 /// One row of the stage table.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct StageTime {
+    /// The stage's name (`decode`, `solve`, ...; [`OTHER`] for the rest).
     pub stage: String,
     /// Wall seconds attributed to the stage.
     pub seconds: f64,

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use super::bundle::{self, Bundle};
 use crate::capture::CaptureSet;
-use crate::error::{Error, Result};
+use crate::error::{BundleProblem, Error, Result};
 
 /// Where a solve's rig comes from when no rig is given explicitly.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -35,16 +35,13 @@ pub fn resolve(
         (CalibrationChoice::Bundle(dir), _) => bundle::read(dir)?,
         (CalibrationChoice::Cited, Some(c)) => {
             if !c.path.join(bundle::INDEX_FILE).is_file() {
-                return Err(Error::capture_set(
-                    &set.dir,
-                    format!(
-                        "cites calibration bundle {} at {}, which is not there: pass \
-                         --calibration DIR where the bundle is now, or --no-calibration to \
-                         solve with the rig copy in the set",
-                        c.id,
-                        c.path.display()
-                    ),
-                ));
+                return Err(Error::Bundle {
+                    dir: set.dir.clone(),
+                    problem: BundleProblem::Missing {
+                        id: c.id.clone(),
+                        path: c.path.clone(),
+                    },
+                });
             }
             bundle::read(&c.path).map_err(|e| {
                 Error::capture_set(
@@ -57,18 +54,16 @@ pub fn resolve(
     if let Some(c) = cited {
         let (id, sha) = (&bundle.index.id, &bundle.index.sha256);
         if (&c.id != id || &c.sha256 != sha) && !allow_mismatch {
-            return Err(Error::capture_set(
-                &set.dir,
-                format!(
-                    "was captured with calibration bundle {} (sha256 {}), but the bundle at {} \
-                     is {id} (sha256 {sha}): solve with the bundle the set cites, or pass \
-                     --allow-calibration-mismatch to use this one anyway (the report records \
-                     both)",
-                    c.id,
-                    c.sha256,
-                    bundle.dir.display()
-                ),
-            ));
+            return Err(Error::Bundle {
+                dir: set.dir.clone(),
+                problem: BundleProblem::Mismatch {
+                    cited_id: c.id.clone(),
+                    cited_sha256: c.sha256.clone(),
+                    path: bundle.dir.clone(),
+                    id: id.clone(),
+                    sha256: sha.clone(),
+                },
+            });
         }
     }
     if bundle.rig.leds.len() != set.rig.leds.len() {

@@ -1,7 +1,7 @@
 //! Flag hints: the library's typed errors say what went wrong; this adds which of psscan's
 //! flags (or which command) fixes it, so only the CLI knows the flags' names.
 
-use psscan::error::{Conflict, Occupied};
+use psscan::error::{BundleProblem, Conflict, Occupied, PortSearch};
 use psscan::Error;
 
 /// How a stopped capture is completed from the command that ran it.
@@ -46,6 +46,23 @@ fn hint(err: &Error, resume: Resume) -> Option<&'static str> {
         Error::Resumable { .. } => match resume {
             Resume::WithFlag => "run the same command with --resume to complete the set",
             Resume::SameCommand => "run the same psscan calibrate command to resume",
+        },
+        Error::NoPort(search) => match search {
+            PortSearch::NoSysfs => "give the port with --port PATH",
+            PortSearch::Several { .. } => "--port auto needs one: choose it with --port PATH",
+            PortSearch::NoArduino { .. } => {
+                "plug the LED controller in, or give its port with --port PATH"
+            }
+        },
+        Error::Bundle { problem, .. } => match problem {
+            BundleProblem::Missing { .. } => {
+                "pass --calibration DIR where the bundle is now, or --no-calibration to solve \
+                 with the rig copy in the set"
+            }
+            BundleProblem::Mismatch { .. } => {
+                "solve with the bundle the set cites, or pass --allow-calibration-mismatch to \
+                 use this one anyway (the report records both)"
+            }
         },
         Error::Incompatible(conflict) => match conflict {
             Conflict::RobustStreaming => {
@@ -99,6 +116,22 @@ mod tests {
                 "--estimator adaptive",
             ),
             (Error::Incompatible(Conflict::CameraWithoutTable), "--table"),
+            (
+                Error::NoPort(PortSearch::NoArduino {
+                    seen: "no serial ports at all".into(),
+                }),
+                "--port PATH",
+            ),
+            (
+                Error::Bundle {
+                    dir: dir.clone(),
+                    problem: BundleProblem::Missing {
+                        id: "b1".into(),
+                        path: dir.clone(),
+                    },
+                },
+                "--no-calibration",
+            ),
         ];
         for (err, flag) in cases {
             let text = with_hint(err.to_string(), &err, Resume::WithFlag);

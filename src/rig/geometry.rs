@@ -26,6 +26,7 @@ impl Camera {
         )
     }
 
+    /// The centre of projection, world metres.
     pub fn centre(&self) -> Vector3<f64> {
         Vector3::from(self.position_m)
     }
@@ -121,11 +122,15 @@ impl PlaneMapper<'_> {
 /// surface with normal `n` reads `falloff * colour * (n . direction)`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LightSample {
+    /// Unit vector from the point toward the LED, world frame.
     pub direction: Vector3<f64>,
+    /// `power * beam(theta) / r^2`, r in metres: the linear signal a white Lambertian surface
+    /// facing the LED would read there.
     pub falloff: f64,
 }
 
 impl Led {
+    /// The LED's position, world metres.
     pub fn position(&self) -> Vector3<f64> {
         Vector3::from(self.position_m)
     }

@@ -20,16 +20,25 @@ pub use targets::{Board, ChartDescription, ChartRect};
 /// `psscan demo` runs anywhere.
 pub const DEFAULT_RIG_TOML: &str = include_str!("../../calibration/default/rig.toml");
 
+/// The scanner as built (`rig.toml`): the camera, its sensor, where the sample lies, and the
+/// LEDs in the order the controller numbers them. Lengths in metres, world frame of
+/// DESIGN.md (origin at the table centre, +z toward the camera).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Rig {
+    /// The rig's name, as capture sets and reports record it.
     pub name: String,
+    /// Free text: who measured it, when, how.
     #[serde(default)]
     pub description: String,
+    /// The camera's optics and pose.
     pub camera: Camera,
+    /// The sensor's levels and noise.
     pub sensor: Sensor,
+    /// Where the sample's surface lies.
     #[serde(default)]
     pub sample: SamplePlane,
+    /// The LEDs, index `k` being the controller's LED `k` and the capture set's frame `Lkk`.
     pub leds: Vec<Led>,
 }
 
@@ -37,13 +46,17 @@ pub struct Rig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Camera {
-    /// Sensor size in pixels.
+    /// Sensor width in pixels.
     pub width: u32,
+    /// Sensor height in pixels.
     pub height: u32,
-    /// Focal lengths and principal point in pixels; pixel centres are at integer coordinates.
+    /// Focal length along columns, in pixels (pixel centres are at integer coordinates).
     pub fx: f64,
+    /// Focal length along rows, in pixels.
     pub fy: f64,
+    /// Principal point's column, in pixels.
     pub cx: f64,
+    /// Principal point's row, in pixels.
     pub cy: f64,
     /// k1 k2 p1 p2 k3, OpenCV's order and model.
     #[serde(default)]
@@ -60,8 +73,11 @@ pub struct Camera {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Sensor {
+    /// Bits per RAW sample (12, 14, 16).
     pub bits: u32,
+    /// The digital number of no light.
     pub black_level: f64,
+    /// The digital number where the sensor clips.
     pub white_level: f64,
     /// Electrons per digital number (the inverse of the conversion gain) at the capture ISO.
     pub gain_e_per_dn: f64,
@@ -77,6 +93,7 @@ pub struct Sensor {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct SamplePlane {
+    /// Height of the sample's surface above the table, metres.
     #[serde(default)]
     pub z_m: f64,
 }
@@ -85,6 +102,7 @@ pub struct SamplePlane {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Led {
+    /// The LED's position, world metres.
     pub position_m: [f64; 3],
     /// The point the LED is aimed at; the table centre unless measured otherwise.
     #[serde(default)]
@@ -132,15 +150,18 @@ impl Rig {
         Ok(rig)
     }
 
+    /// Reads and validates the rig file at `path`.
     pub fn load(path: &Path) -> Result<Rig> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         Rig::from_toml_str(&text, path)
     }
 
+    /// The rig as `rig.toml` text.
     pub fn to_toml_string(&self) -> String {
         toml::to_string_pretty(self).expect("a rig always serialises")
     }
 
+    /// Writes the rig as TOML to `path`, atomically.
     pub fn save(&self, path: &Path) -> Result<()> {
         crate::fsutil::write_atomic(path, self.to_toml_string().as_bytes())
     }

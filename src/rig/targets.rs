@@ -11,8 +11,11 @@ use crate::error::{Error, Result};
 /// A chessboard target: inner corners and square size.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Board {
+    /// Inner corners along a row.
     pub cols: usize,
+    /// Inner corners along a column.
     pub rows: usize,
+    /// Side of one square, metres.
     pub square_m: f64,
 }
 
@@ -69,10 +72,15 @@ impl Board {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ChartDescription {
+    /// The chart's name, as reports record it.
     pub name: String,
+    /// Patch rows.
     pub rows: usize,
+    /// Patch columns.
     pub cols: usize,
+    /// Nominal diffuse reflectance of each patch (0..1), row by row from the top left.
     pub reflectance: Vec<f64>,
+    /// The central fraction of each patch's width and height that is sampled (0..1].
     #[serde(default = "default_sample_fraction")]
     pub sample_fraction: f64,
 }
@@ -82,6 +90,7 @@ fn default_sample_fraction() -> f64 {
 }
 
 impl ChartDescription {
+    /// Reads and validates a chart layout (TOML) from `path`.
     pub fn load(path: &Path) -> Result<ChartDescription> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         let chart: ChartDescription = toml::from_str(&text)
@@ -92,6 +101,7 @@ impl ChartDescription {
         Ok(chart)
     }
 
+    /// Checks the layout; the error is `(field, reason)`.
     pub fn validate(&self) -> std::result::Result<(), (String, String)> {
         if self.rows == 0 || self.cols == 0 {
             return Err(("rows".into(), "a chart needs at least one patch".into()));
@@ -142,9 +152,13 @@ impl ChartDescription {
 /// The chart's outer rectangle in image pixels (x0, y0) to (x1, y1), as the user marks it.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChartRect {
+    /// Left edge, image pixels.
     pub x0: f64,
+    /// Top edge, image pixels.
     pub y0: f64,
+    /// Right edge, image pixels.
     pub x1: f64,
+    /// Bottom edge, image pixels.
     pub y1: f64,
 }
 

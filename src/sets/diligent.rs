@@ -130,8 +130,10 @@ fn diligent_noise() -> NoiseModel {
     }
 }
 
-/// Loads a DiLiGenT-layout set with ground truth for `psscan eval`; a set without
-/// `Normal_gt.mat` is an error that names it.
+/// Loads a DiLiGenT-layout set with ground truth for `psscan eval`, through the same
+/// [`DiligentSource`] a solve opens; a set without `Normal_gt.mat` is an error that names it.
+/// The evaluation draws its light subsets from the loaded frames, so a set is read once for
+/// every light count.
 pub fn open_eval_set(dir: &Path, progress: &dyn Progress) -> Result<eval::EvalSet> {
     if set_kind(dir)? != SetKind::Diligent {
         return Err(Error::capture_set(
@@ -139,31 +141,55 @@ pub fn open_eval_set(dir: &Path, progress: &dyn Progress) -> Result<eval::EvalSe
             "psscan eval reads DiLiGenT-layout sets with ground truth; this is a psscan capture set",
         ));
     }
-    let set = DiligentSet::open(dir)?;
-    let frames = set.load_frames(progress)?;
-    let mask = set.mask(frames.width, frames.height)?;
-    let truth = set
-        .normal_truth(frames.width, frames.height)?
-        .ok_or_else(|| {
-            Error::capture_set(
-                dir,
-                format!(
-                    "has no {}: psscan eval needs ground-truth normals",
-                    diligent::NORMAL_TRUTH
-                ),
-            )
-        })?;
+    let source = DiligentSource::open(dir, &SolveJob::default())?;
     let name = dir
         .canonicalize()
         .unwrap_or_else(|_| dir.to_path_buf())
         .file_name()
         .map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into());
+    eval_set(&source, name, progress)
+}
+
+/// A set source's frames, distant lights, noise, mask and ground-truth normals, loaded whole
+/// for the evaluation.
+fn eval_set(
+    source: &dyn SetSource,
+    name: String,
+    progress: &dyn Progress,
+) -> Result<eval::EvalSet> {
+    let dir = source.location();
+    let mut clock = StageClock::default();
+    let (frames, decode) = source.load(&DevelopOptions::default(), progress, &mut clock)?;
+    let LightSource::Directions {
+        directions,
+        intensities,
+    } = source.lights()
+    else {
+        return Err(Error::capture_set(
+            dir,
+            "psscan eval solves sets lit by distant lights; this set's lights are positions",
+        ));
+    };
+    let (directions, intensities) = (directions.to_vec(), intensities.to_vec());
+    let mask = source.mask(&frames)?;
+    let truth = match source.truth(frames.width, frames.height, &decode)? {
+        Some(Truth::Normals(normal)) | Some(Truth::Surface { normal, .. }) => normal,
+        None => {
+            return Err(Error::capture_set(
+                dir,
+                format!(
+                    "has no {}: psscan eval needs ground-truth normals",
+                    diligent::NORMAL_TRUTH
+                ),
+            ))
+        }
+    };
     Ok(eval::EvalSet {
         name,
+        noise: source.noise(&decode),
         frames,
-        directions: set.directions,
-        intensities: set.intensities,
-        noise: diligent_noise(),
+        directions,
+        intensities,
         mask,
         truth,
     })

@@ -5,7 +5,7 @@
 
 use serde::Serialize;
 
-use crate::error::{Error, Result};
+use crate::error::{Error, PortSearch, Result};
 
 /// One serial port and what is known about it.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize)]
@@ -70,11 +70,7 @@ pub fn list_ports() -> Result<Vec<PortInfo>> {
     // sysfs); say so instead.
     #[cfg(target_os = "linux")]
     if !std::path::Path::new("/sys/class/tty").is_dir() {
-        return Err(Error::Unsupported(
-            "cannot list serial ports: /sys/class/tty is missing (no sysfs); give the port \
-             with --port PATH"
-                .into(),
-        ));
+        return Err(Error::NoPort(PortSearch::NoSysfs));
     }
     let ports = serialport::available_ports()
         .map_err(|e| Error::Unsupported(format!("cannot list serial ports: {e}")))?;
@@ -134,14 +130,13 @@ pub fn choose_port(ports: &[PortInfo]) -> Result<String> {
             [] => continue,
             [one] => return Ok(one.path.clone()),
             many => {
-                return Err(Error::Invalid(format!(
-                    "--port auto: several boards could be the LED controller ({}); choose one \
-                     with --port PATH",
-                    many.iter()
+                return Err(Error::NoPort(PortSearch::Several {
+                    candidates: many
+                        .iter()
                         .map(|p| format!("{} {}", p.path, p.board.as_deref().unwrap_or("")))
                         .collect::<Vec<_>>()
-                        .join(", ")
-                )))
+                        .join(", "),
+                }))
             }
         }
     }
@@ -157,10 +152,7 @@ pub fn choose_port(ports: &[PortInfo]) -> Result<String> {
                 .join(", ")
         )
     };
-    Err(Error::Invalid(format!(
-        "--port auto: no Arduino found ({seen}); plug the LED controller in, or give its port \
-         with --port PATH"
-    )))
+    Err(Error::NoPort(PortSearch::NoArduino { seen }))
 }
 
 #[cfg(test)]
@@ -215,8 +207,12 @@ mod tests {
         );
         let mut uno2 = uno.clone();
         uno2.path = "/dev/ttyACM2".into();
-        let err = choose_port(&[uno, uno2]).unwrap_err().to_string();
-        assert!(err.contains("several") && err.contains("--port"), "{err}");
+        let err = choose_port(&[uno, uno2]).unwrap_err();
+        assert!(
+            matches!(&err, Error::NoPort(PortSearch::Several { candidates })
+                if candidates.contains("/dev/ttyACM2")),
+            "{err}"
+        );
         assert!(choose_port(&[])
             .unwrap_err()
             .to_string()
