@@ -89,8 +89,9 @@ pub enum Error {
     Bundle {
         /// The capture set's folder.
         dir: PathBuf,
-        /// What is wrong with the bundle.
-        problem: BundleProblem,
+        /// What is wrong with the bundle (boxed: it is large, and errors travel in every
+        /// `Result`).
+        problem: Box<BundleProblem>,
     },
 
     /// Settings that cannot be used together; the conflict says which, so a caller can name

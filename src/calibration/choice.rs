@@ -37,10 +37,10 @@ pub fn resolve(
             if !c.path.join(bundle::INDEX_FILE).is_file() {
                 return Err(Error::Bundle {
                     dir: set.dir.clone(),
-                    problem: BundleProblem::Missing {
+                    problem: Box::new(BundleProblem::Missing {
                         id: c.id.clone(),
                         path: c.path.clone(),
-                    },
+                    }),
                 });
             }
             bundle::read(&c.path).map_err(|e| {
@@ -56,13 +56,13 @@ pub fn resolve(
         if (&c.id != id || &c.sha256 != sha) && !allow_mismatch {
             return Err(Error::Bundle {
                 dir: set.dir.clone(),
-                problem: BundleProblem::Mismatch {
+                problem: Box::new(BundleProblem::Mismatch {
                     cited_id: c.id.clone(),
                     cited_sha256: c.sha256.clone(),
                     path: bundle.dir.clone(),
                     id: id.clone(),
                     sha256: sha.clone(),
-                },
+                }),
             });
         }
     }

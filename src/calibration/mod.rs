@@ -6,9 +6,9 @@
 pub mod bundle;
 pub mod camera;
 pub mod capture;
-pub mod chartfind;
+mod chartfind;
 pub mod choice;
-pub mod cv;
+mod cv;
 pub mod files;
 pub mod graychart;
 pub mod lights;

@@ -6,14 +6,14 @@
 pub mod camera;
 pub mod diligent;
 pub mod exposure;
-pub mod frame_check;
+mod frame_check;
 pub mod interrupt;
-pub mod led_shading;
+mod led_shading;
 pub mod lights;
 pub mod manifest;
-pub mod sequencer;
-pub mod set;
-pub mod single;
+mod sequencer;
+mod set;
+mod single;
 
 pub use diligent::DiligentSet;
 pub use interrupt::Interrupt;

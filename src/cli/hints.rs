@@ -54,7 +54,7 @@ fn hint(err: &Error, resume: Resume) -> Option<&'static str> {
                 "plug the LED controller in, or give its port with --port PATH"
             }
         },
-        Error::Bundle { problem, .. } => match problem {
+        Error::Bundle { problem, .. } => match **problem {
             BundleProblem::Missing { .. } => {
                 "pass --calibration DIR where the bundle is now, or --no-calibration to solve \
                  with the rig copy in the set"
@@ -125,10 +125,10 @@ mod tests {
             (
                 Error::Bundle {
                     dir: dir.clone(),
-                    problem: BundleProblem::Missing {
+                    problem: Box::new(BundleProblem::Missing {
                         id: "b1".into(),
                         path: dir.clone(),
-                    },
+                    }),
                 },
                 "--no-calibration",
             ),

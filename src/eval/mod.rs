@@ -3,11 +3,11 @@
 //! evaluation behind `psscan eval` (`run`: estimators on light subsets of sets with ground
 //! truth, `table`: its Markdown, JSON and plot).
 
-pub mod anchors;
-pub mod run;
-pub mod subsets;
+mod anchors;
+mod run;
+mod subsets;
 pub mod table;
-pub mod trimmed;
+mod trimmed;
 
 pub use crate::math::angle_deg;
 pub use run::{evaluate, EvalOptions, EvalReport, EvalSet, Row};

@@ -6,11 +6,11 @@
 //! tests wire it in through the production traits ([`crate::capture::camera::Camera`],
 //! [`crate::calibration::wizard::TargetSource`], [`crate::calibration::capture::Operator`]).
 
-pub mod camera;
+mod camera;
 pub mod emulated;
 pub mod emulator;
 pub mod operator;
-pub mod target_camera;
+mod target_camera;
 
 pub use camera::{ControllerState, LitSource, SimCamera, SimOutput};
 pub use emulated::lit_source;

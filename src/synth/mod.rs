@@ -2,12 +2,12 @@
 //! through a sensor model, with exact ground truth. Every stage downstream is tested on these
 //! inputs. Production paths use it only through `psscan demo` and `psscan synth`.
 
-pub mod brdf;
+mod brdf;
 pub mod demo;
 mod render;
-pub mod sensor;
+mod sensor;
 pub mod set;
-pub mod source;
+mod source;
 pub mod targets;
 pub mod textile;
 
