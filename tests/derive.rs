@@ -169,6 +169,67 @@ fn validate_gltf(gltf: &Path) -> Option<Value> {
     Some(serde_json::from_str(&text).unwrap())
 }
 
+/// three.js (the npm package `three`, installed beside the validator) in headless Chromium:
+/// its own GLTFLoader opens `gltf` and renders it; what it made of the material, or `None`
+/// without Chromium or the package.
+fn open_in_three_js(gltf: &Path) -> Option<Value> {
+    let modules = gltf_validator()?;
+    let three = modules.join("three");
+    if !three.join("build/three.module.js").exists() {
+        let ok = Command::new("npm")
+            .args(["install", "--no-audit", "--no-fund", "--prefix"])
+            .arg(modules.parent().unwrap())
+            .arg("three")
+            .status()
+            .is_ok_and(|s| s.success());
+        if !ok {
+            assert!(
+                std::env::var_os("CI").is_none(),
+                "CI: npm install three failed"
+            );
+            return None;
+        }
+    }
+    let chromium = ["chromium", "chromium-browser"].iter().find_map(|name| {
+        let path = std::env::var_os("PATH")?;
+        std::env::split_paths(&path)
+            .map(|d| d.join(name))
+            .find(|p| p.is_file())
+    })?;
+    let template = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/scripts/open_gltf_three.html"),
+    )
+    .unwrap();
+    let page = gltf.with_file_name("open_in_three.html");
+    let html = template
+        .replace("THREE_DIR", &format!("file://{}", three.display()))
+        .replace("GLTF_FILE", &gltf.file_name().unwrap().to_string_lossy());
+    std::fs::write(&page, html).unwrap();
+    let profile = tempfile::tempdir().unwrap();
+    let out = Command::new(chromium)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu-sandbox",
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--no-first-run",
+            // The page imports three.js and loads the glTF from disk.
+            "--allow-file-access-from-files",
+            "--virtual-time-budget=30000",
+        ])
+        .arg(format!("--user-data-dir={}", profile.path().display()))
+        .arg("--dump-dom")
+        .arg(format!("file://{}", page.display()))
+        .output()
+        .unwrap();
+    std::fs::remove_file(&page).unwrap();
+    let dom = String::from_utf8_lossy(&out.stdout);
+    let start = dom.find("THREE-BEGIN{").expect("three.js wrote no result") + "THREE-BEGIN".len();
+    let end = dom[start..].find("THREE-END").unwrap() + start;
+    Some(serde_json::from_str(&dom[start..end].replace("&amp;", "&")).unwrap())
+}
+
 #[test]
 fn every_output_is_written_and_independent_decoders_accept_it() {
     let out = tempfile::tempdir().unwrap();
@@ -252,6 +313,27 @@ fn every_output_is_written_and_independent_decoders_accept_it() {
             (Some(0), Some(0))
         );
     }
+    match open_in_three_js(&derived.join("material.gltf")) {
+        Some(three) => {
+            eprintln!("three.js: {three}");
+            assert_eq!(three["errors"], serde_json::json!([]), "{three}");
+            for map in ["map", "normalMap", "roughnessMap"] {
+                assert_eq!(three[map]["width"], 128, "{map}: {three}");
+            }
+            // The quad is the tile's physical size (128 px at the solve's scale), in metres.
+            let mm = report["pixel_mm"].as_f64().unwrap();
+            let size = three["size"].as_array().unwrap();
+            assert!(
+                (size[0].as_f64().unwrap() - 128.0 * mm / 1000.0).abs() < 1e-6,
+                "{three}"
+            );
+            assert!(
+                three["lit_pixels"].as_u64().unwrap() > 0,
+                "three.js drew nothing"
+            );
+        }
+        None => eprintln!("SKIPPED three.js check: no chromium or npm package three"),
+    }
 }
 
 #[test]
@@ -303,6 +385,16 @@ fn a_fitted_cloth_lobe_becomes_khr_materials_sheen() {
         assert!(
             v["extensions"].to_string().contains("KHR_materials_sheen"),
             "{v}"
+        );
+    }
+    // three.js reads the extension into its physical material's sheen.
+    if let Some(three) = open_in_three_js(&derived.join("material.gltf")) {
+        assert_eq!(three["material"], "MeshPhysicalMaterial", "{three}");
+        assert_eq!(three["sheen"], 1.0, "{three}");
+        assert!((three["sheenRoughness"].as_f64().unwrap() - 0.4 / 2f64.sqrt()).abs() < 1e-6);
+        assert!(
+            (three["sheenColor"][0].as_f64().unwrap() - 0.35).abs() < 1e-6,
+            "{three}"
         );
     }
 }

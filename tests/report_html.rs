@@ -308,3 +308,102 @@ fn the_page_build_has_its_own_stage_row() {
         "{sum} vs {total}"
     );
 }
+
+fn json_of(out: &std::process::Output) -> Value {
+    serde_json::from_slice(&out.stdout).expect("--json prints JSON")
+}
+
+/// `solve` with derive options writes the derived maps into OUT/derived/ and the page shows
+/// height and roughness; `psscan report --derived DIR` shows a separate derive's maps, says
+/// so when that derive is damaged, and refuses a folder that is not a derive.
+#[test]
+fn derived_height_and_roughness_are_on_the_page() {
+    let tmp = tempfile::tempdir().unwrap();
+    let set = tmp.path().join("set");
+    let set_s = set.to_str().unwrap();
+    psscan(&[
+        "synth", "--out", set_s, "--width", "160", "--height", "120", "-q",
+    ]);
+    let maps = tmp.path().join("maps");
+    let maps_s = maps.to_str().unwrap();
+    let solve = json_of(&psscan(&[
+        "solve",
+        set_s,
+        "--out",
+        maps_s,
+        "--height",
+        "--roughness",
+        "vmf",
+        "--json",
+        "-q",
+    ]));
+    let outputs = solve["derived"]["outputs"]
+        .as_object()
+        .expect("derive outputs");
+    assert!(maps.join("derived/derive.json").is_file());
+    for name in ["height.exr", "height.png", "roughness.dds"] {
+        let path = Path::new(outputs[name].as_str().unwrap());
+        assert_eq!(path, maps.join("derived").join(name), "{name}");
+        assert!(path.is_file(), "{}", path.display());
+    }
+    // No DDS was asked for: only the roughness mips' own file.
+    assert!(!maps.join("derived/normal.dds").exists());
+    let page = std::fs::read_to_string(maps.join("report.html")).unwrap();
+    assert!(page.contains("id=\"img-height\"") && page.contains("id=\"img-roughness\""));
+    assert!(!page.contains("not derived for this solve"));
+
+    // Rebuilding the page finds the solve's own derive.
+    let rebuilt = json_of(&psscan(&["report", maps_s, "--json"]));
+    assert_eq!(
+        rebuilt["derived_maps"],
+        serde_json::json!(["height", "roughness"])
+    );
+
+    // A separate derive, named on the command line.
+    let derived = tmp.path().join("d");
+    let derived_s = derived.to_str().unwrap();
+    psscan(&["derive", maps_s, "--out", derived_s, "--height", "-q"]);
+    let named = json_of(&psscan(&[
+        "report",
+        maps_s,
+        "--derived",
+        derived_s,
+        "--json",
+    ]));
+    assert_eq!(named["derived"].as_str(), Some(derived_s));
+    assert_eq!(named["derived_maps"], serde_json::json!(["height"]));
+
+    // A folder that is not a derive is refused, naming it.
+    let refused = Command::new(env!("CARGO_BIN_EXE_psscan"))
+        .args(["report", maps_s, "--derived", set_s])
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        err.contains("not a derive folder") && err.contains(set_s),
+        "{err}"
+    );
+
+    if !skip("derived_height_and_roughness_are_on_the_page") {
+        let (result, _) = selftest(&maps.join("report.html"), "selftest");
+        assert_eq!(result["errors"], serde_json::json!([]), "{result}");
+        assert_eq!(result["images_failed"], serde_json::json!([]), "{result}");
+    }
+
+    // A damaged derive report: the page says so instead of showing nothing.
+    std::fs::write(derived.join("derive.json"), "{ not json").unwrap();
+    let damaged = json_of(&psscan(&[
+        "report",
+        maps_s,
+        "--derived",
+        derived_s,
+        "--json",
+    ]));
+    assert_eq!(damaged["derived_maps"], serde_json::json!([]));
+    let page = std::fs::read_to_string(maps.join("report.html")).unwrap();
+    assert!(
+        page.contains("derive.json: is damaged"),
+        "the page does not say so"
+    );
+}

@@ -24,11 +24,15 @@ pub struct DeriveArgs {
     /// Replace an existing derive folder.
     #[arg(long)]
     force: bool,
+    /// Normal textures DirectX-style (+Y down) instead of OpenGL-style (+Y up).
+    #[arg(long)]
+    directx: bool,
     #[command(flatten)]
     flags: DeriveFlags,
 }
 
-/// The derive steps and encodings.
+/// The derive steps and encodings (on `derive`, and on `solve`, which derives from the maps it
+/// has just solved into OUT/derived/). The normal convention is each command's `--directx`.
 #[derive(Args, Clone)]
 pub struct DeriveFlags {
     /// Every output: flatten (10mm unless --flatten), height, roughness mips, textures, DDS,
@@ -54,9 +58,6 @@ pub struct DeriveFlags {
     /// normal.png, normal_xy.png (BC5 layout: X red, Y green) and albedo.png.
     #[arg(long)]
     textures: bool,
-    /// Normal textures DirectX-style (+Y down) instead of OpenGL-style (+Y up).
-    #[arg(long)]
-    directx: bool,
     /// Bits per channel of the PNG textures: 8 or 16.
     #[arg(long, default_value_t = 16)]
     bits: u8,
@@ -72,7 +73,19 @@ pub struct DeriveFlags {
 }
 
 impl DeriveFlags {
-    pub fn options(&self) -> anyhow::Result<DeriveOptions> {
+    /// Whether any step was asked for (a solve derives nothing otherwise).
+    pub fn requested(&self) -> bool {
+        self.all
+            || self.flatten.is_some()
+            || self.height
+            || self.tile.is_some()
+            || self.roughness.is_some()
+            || self.textures
+            || self.dds
+            || self.gltf
+    }
+
+    pub fn options(&self, directx: bool) -> anyhow::Result<DeriveOptions> {
         let mut o = if self.all {
             DeriveOptions::all()
         } else {
@@ -94,7 +107,7 @@ impl DeriveFlags {
             r.base = self.base_roughness;
         }
         o.tile = self.tile.as_deref().map(parse_tile).transpose()?;
-        o.convention = if self.directx {
+        o.convention = if directx {
             NormalConvention::DirectX
         } else {
             NormalConvention::OpenGl
@@ -124,7 +137,7 @@ fn parse_tile(text: &str) -> anyhow::Result<TileChoice> {
 }
 
 pub fn derive(args: &DeriveArgs, json: bool, bars: &Bars) -> anyhow::Result<()> {
-    let options = args.flags.options()?;
+    let options = args.flags.options(args.directx)?;
     let out = args.out.clone().unwrap_or_else(|| {
         let mut name = args
             .solve_dir

@@ -10,6 +10,10 @@ use psscan::maps::html::{self, relight::Brdf, relight::RelightParams};
 pub struct ReportArgs {
     /// A solve's output folder (report.json and the maps).
     solve_dir: PathBuf,
+    /// A `psscan derive` folder whose height and roughness the page shows (default: the
+    /// solve folder's own derived/, when it has one).
+    #[arg(long, value_name = "DIR")]
+    derived: Option<PathBuf>,
     /// Render the page's relight under this light direction (x,y,z; world frame, +z toward
     /// the camera) into --render-out instead of rebuilding the page.
     #[arg(
@@ -64,7 +68,16 @@ pub fn report(args: &ReportArgs, json: bool) -> anyhow::Result<()> {
         }
         return Ok(());
     }
-    let summary = html::write_report_page(&args.solve_dir)?;
+    if let Some(dir) = &args.derived {
+        if !dir.join(psscan::maps::derive::DERIVE_REPORT).is_file() {
+            anyhow::bail!(
+                "{}: not a derive folder (it has no {}); run psscan derive first",
+                dir.display(),
+                psscan::maps::derive::DERIVE_REPORT
+            );
+        }
+    }
+    let summary = html::write_report_page_with(&args.solve_dir, args.derived.as_deref())?;
     if json {
         crate::cli::print_json(&summary);
     } else {

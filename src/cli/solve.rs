@@ -39,6 +39,10 @@ pub(super) struct SolveArgs {
     pub(super) parallel_sets: usize,
     #[command(flatten)]
     pub(super) solve: SolveFlags,
+    /// Derived maps (`psscan derive`'s steps, written into OUT/derived/ and shown on the
+    /// report page); none unless a step is named.
+    #[command(flatten, next_help_heading = "Derive")]
+    pub(super) derive: super::derive::DeriveFlags,
 }
 
 #[derive(Args, Clone)]
@@ -212,6 +216,7 @@ impl SolveFlags {
             inputs: Vec::new(),
             calibration: Default::default(),
             allow_calibration_mismatch: false,
+            derive: None,
             develop: DevelopOptions {
                 resolution: match self.resolution {
                     ResolutionArg::Full => Resolution::Full,
@@ -236,6 +241,9 @@ pub(super) fn solve(args: &SolveArgs, json: bool, bars: &Bars) -> anyhow::Result
         (None, false) => CalibrationChoice::Cited,
     };
     job.allow_calibration_mismatch = args.allow_calibration_mismatch;
+    if args.derive.requested() {
+        job.derive = Some(args.derive.options(args.solve.directx)?);
+    }
     if let [set] = args.sets.as_slice() {
         let report = sets::solve_set(set, &args.out, &job, bars)?;
         if json {
@@ -393,6 +401,18 @@ pub(super) fn print_solve(set: &Path, out: &Path, report: &psscan::maps::Report)
         println!(
             "  frames: {} ({}); dark frame: {}",
             decode.encoding, decode.method, decode.dark_frame
+        );
+    }
+    if let Some(derived) = report
+        .derived
+        .as_ref()
+        .and_then(|d| d["outputs"].as_object())
+    {
+        let names: Vec<&str> = derived.keys().map(String::as_str).collect();
+        println!(
+            "  derived into {}: {}",
+            out.join("derived").display(),
+            names.join(", ")
         );
     }
     print_warnings(&report.warnings);

@@ -92,6 +92,10 @@ pub struct Report {
     /// Millimetres on the sample per map pixel (from the rig's camera), for `derive`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub pixel_size_mm: Option<f64>,
+    /// What the solve's derive step made in `derived/` (its `derive.json`), when the solve
+    /// was asked for derived maps.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub derived: Option<serde_json::Value>,
 }
 
 /// One light of the solve.
@@ -298,6 +302,7 @@ impl Report {
             camera: None,
             normal_error_histogram: None,
             pixel_size_mm: None,
+            derived: None,
         }
     }
 

@@ -115,6 +115,10 @@ pub struct SolveJob {
     pub calibration: CalibrationChoice,
     /// Solve with a bundle other than the one the set cites (its id or checksum differ).
     pub allow_calibration_mismatch: bool,
+    /// Derive the engine-ready material (`psscan derive`'s steps) from the solved maps into
+    /// the solve folder's `derived/`, before the report page is built (which then shows the
+    /// height and roughness).
+    pub derive: Option<crate::maps::derive::DeriveOptions>,
 }
 
 impl SolveJob {

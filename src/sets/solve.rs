@@ -8,7 +8,9 @@ use std::path::{Path, PathBuf};
 use super::{open, SetSource, SolveJob, Truth};
 use crate::error::Result;
 use crate::eval;
-use crate::fsutil::{check_outside_inputs, StagedDir};
+use crate::fsutil::{check_outside_inputs, write_atomic, StagedDir};
+use crate::maps::derive::{self, DeriveOptions, DeriveSource, SolvedMaps};
+use crate::maps::html::derived::DERIVED_DIR;
 use crate::maps::report::Histogram;
 use crate::maps::{self, MapOptions, Report, WrittenMaps};
 use crate::plane::{Mask, SensorWindow};
@@ -20,6 +22,9 @@ use crate::timing::StageClock;
 
 /// The stage of reading a set's ground truth (beside the maps' writing).
 pub const TRUTH_READ_STAGE: &str = "read truth";
+
+/// The stage of deriving the material from the solved maps (solve with derive options).
+pub const DERIVE_STAGE: &str = "derive";
 
 /// The stage of building `report.html`.
 pub const REPORT_PAGE_STAGE: &str = "report page";
@@ -157,6 +162,11 @@ fn run(
     });
     report.decode = Some(solved.decode.clone());
     let report_s = clock.elapsed() - report_start;
+    if let Some(options) = &job.derive {
+        report.derived = Some(clock.time(DERIVE_STAGE, || {
+            derive_into(stage.path(), out, &solved, &report, job, options, progress)
+        })?);
+    }
     report.timings_s = BTreeMap::from([
         ("decode".to_string(), solved.decode_s),
         ("solve".to_string(), clock.seconds("solve")),
@@ -285,6 +295,41 @@ fn compare(
             })
         }
     }
+}
+
+/// Runs `derive` on the solved maps into the staged folder's `derived/`, and returns its
+/// report with the files named under the final folder (`out/derived/...`).
+fn derive_into(
+    stage: &Path,
+    out: &Path,
+    solved: &Solved,
+    report: &Report,
+    job: &SolveJob,
+    options: &DeriveOptions,
+    progress: &dyn Progress,
+) -> Result<serde_json::Value> {
+    let maps = SolvedMaps::from_result(
+        &solved.result,
+        solved.maps.display_matrix.as_ref(),
+        report.pixel_size_mm,
+        job.options.robust.sheen,
+    );
+    let dir = stage.join(DERIVED_DIR);
+    let mut derived = derive::derive(
+        DeriveSource::Maps(Box::new(maps)),
+        &dir,
+        options,
+        false,
+        progress,
+    )?;
+    let final_dir = out.join(DERIVED_DIR);
+    for (name, path) in derived.outputs.iter_mut() {
+        *path = final_dir.join(name);
+    }
+    // derive.json named the files where they were staged; name them where they will be.
+    let json = serde_json::to_string_pretty(&derived).expect("a derive report serialises");
+    write_atomic(&dir.join(derive::DERIVE_REPORT), json.as_bytes())?;
+    Ok(serde_json::to_value(&derived).expect("a derive report serialises"))
 }
 
 /// The written maps' paths under their final folder name.

@@ -82,25 +82,31 @@ pub fn write_all(
         )
     };
     let rough = || -> Result<()> {
-        let Some(levels) = roughness else {
-            return Ok(());
-        };
-        let levels = levels
-            .iter()
-            .map(|p| p.data.iter().map(|&r| [unorm8(r), 0, 0, 255]).collect())
-            .collect();
-        encode(
-            &dir.join("roughness.dds"),
-            w,
-            h,
-            levels,
-            ImageFormat::BC4RUnorm,
-        )
+        match roughness {
+            Some(levels) => write_roughness(dir, levels),
+            None => Ok(()),
+        }
     };
     let ((n, a), r) = rayon::join(|| rayon::join(normal, albedo), rough);
     n?;
     a?;
     r
+}
+
+/// `roughness.dds`: BC4, one level per plane (full resolution first).
+pub fn write_roughness(dir: &Path, levels: &[Plane]) -> Result<()> {
+    let (w, h) = (levels[0].width as u32, levels[0].height as u32);
+    let levels = levels
+        .iter()
+        .map(|p| p.data.iter().map(|&r| [unorm8(r), 0, 0, 255]).collect())
+        .collect();
+    encode(
+        &dir.join("roughness.dds"),
+        w,
+        h,
+        levels,
+        ImageFormat::BC4RUnorm,
+    )
 }
 
 fn unorm8(v: f32) -> u8 {
@@ -178,6 +184,9 @@ fn encode_strip(
     width: usize,
     format: ImageFormat,
 ) -> std::result::Result<Vec<u8>, image_dds::error::SurfaceError> {
+    if format == ImageFormat::BC7RgbaUnormSrgb {
+        return Ok(encode_bc7_opaque(texels, width));
+    }
     let bytes: Vec<u8> = texels.iter().flatten().copied().collect();
     let strip = SurfaceRgba8 {
         width: width as u32,
@@ -190,4 +199,26 @@ fn encode_strip(
     Ok(strip
         .encode(format, Quality::Normal, Mipmaps::Disabled)?
         .data)
+}
+
+/// BC7 with the ISPC encoder's opaque "very fast" settings: the albedo has no alpha, and the
+/// alpha-capable settings image_dds uses spend their effort on a constant channel. The strip
+/// is padded to whole 4 x 4 blocks by repeating its last column and row, as block encoders do.
+fn encode_bc7_opaque(texels: &[[u8; 4]], width: usize) -> Vec<u8> {
+    let height = texels.len() / width;
+    let (pw, ph) = (width.next_multiple_of(4), height.next_multiple_of(4));
+    let padded: Vec<u8> = (0..ph)
+        .flat_map(|y| {
+            let row = &texels[y.min(height - 1) * width..][..width];
+            (0..pw).map(move |x| row[x.min(width - 1)])
+        })
+        .flatten()
+        .collect();
+    let surface = intel_tex_2::RgbaSurface {
+        data: &padded,
+        width: pw as u32,
+        height: ph as u32,
+        stride: (pw * 4) as u32,
+    };
+    intel_tex_2::bc7::compress_blocks(&intel_tex_2::bc7::opaque_very_fast_settings(), &surface)
 }

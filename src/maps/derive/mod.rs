@@ -303,6 +303,11 @@ pub fn derive(
         step("roughness", &mut || {
             let levels = chain.roughness(r.filter, r.base);
             report.roughness = Some(mips::RoughnessReport::new(r, &levels));
+            // The roughness mips are this step's product: with --dds they go into the DDS
+            // step's files, without it into roughness.dds alone.
+            if !options.dds {
+                dds::write_roughness(dir, &levels)?;
+            }
             roughness_levels = Some(levels);
             Ok(())
         })?;

@@ -9,6 +9,7 @@
 //! left. `psscan report --render-light` renders the relight on the CPU ([`relight::render`])
 //! from the same textures, for comparison with the canvas.
 
+pub mod derived;
 pub mod frames;
 pub mod images;
 mod loupe;
@@ -62,6 +63,10 @@ pub struct PageSummary {
     pub loupe_quality: u8,
     /// Maps that could not be read, in words.
     pub missing: Vec<String>,
+    /// The derive folder whose maps the page shows, and which of them it shows.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub derived: Option<PathBuf>,
+    pub derived_maps: Vec<String>,
     /// Why `report.json` could not be used, when it could not.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub report_error: Option<String>,
@@ -110,7 +115,13 @@ pub fn render_relight_png(dir: &Path, params: &RelightParams, out: &Path) -> Res
 
 /// Builds `report.html` in `dir` from what the folder holds, and writes it atomically.
 pub fn write_report_page(dir: &Path) -> Result<PageSummary> {
-    let (html, mut summary) = build_page(dir);
+    write_report_page_with(dir, None)
+}
+
+/// [`write_report_page`], showing the height and roughness of the derive in `derived`
+/// (default: the solve folder's own `derived/`, when it holds one).
+pub fn write_report_page_with(dir: &Path, derived: Option<&Path>) -> Result<PageSummary> {
+    let (html, mut summary) = build_page_with(dir, derived);
     summary.path = dir.join(PAGE_FILE);
     summary.bytes = html.len();
     write_atomic(&summary.path, html.as_bytes())?;
@@ -304,7 +315,11 @@ fn fmt_value(v: f32) -> String {
     }
 }
 
-fn map_parts(maps: &FullMaps, textures: Option<&RelightTextures>) -> String {
+fn map_parts(
+    maps: &FullMaps,
+    textures: Option<&RelightTextures>,
+    derived_dir: Option<&Path>,
+) -> (String, Vec<String>) {
     let mut out = String::new();
     match textures {
         Some(t) => {
@@ -344,9 +359,20 @@ fn map_parts(maps: &FullMaps, textures: Option<&RelightTextures>) -> String {
             }
         }
     }
-    out += "<figure class=\"map\"><figcaption>height and roughness</figcaption><p class=\"note\">\
-            not derived by this solve: psscan writes albedo, normal and confidence maps</p></figure>";
-    out
+    let mut shown = Vec::new();
+    match derived_dir {
+        Some(dir) => {
+            let (html, maps) = derived::parts(dir);
+            out += &html;
+            shown = maps;
+        }
+        None => {
+            out += "<figure class=\"map\"><figcaption>height and roughness</figcaption>\
+                    <p class=\"note\">not derived for this solve: run psscan derive (or solve \
+                    with --height / --roughness), then psscan report</p></figure>";
+        }
+    }
+    (out, shown)
 }
 
 fn frames_part(dir: &Path, report: Option<&Value>) -> (String, Value) {
@@ -382,12 +408,17 @@ fn frames_part(dir: &Path, report: Option<&Value>) -> (String, Value) {
     }
 }
 
-fn build_parts(dir: &Path, report: std::result::Result<&Value, &str>) -> (Parts, PageSummary) {
+fn build_parts(
+    dir: &Path,
+    report: std::result::Result<&Value, &str>,
+    derived: Option<&Path>,
+) -> (Parts, PageSummary) {
     let maps = FullMaps::read(dir, normal_convention(report.ok()));
     let r = Reduction::for_size(maps.width, maps.height);
     let textures = images::relight_textures(&maps, &r);
     let (frames, frames_data) = frames_part(dir, report.ok());
-    let map_html = map_parts(&maps, textures.as_ref());
+    let derived = derived::locate(dir, derived);
+    let (map_html, derived_maps) = map_parts(&maps, textures.as_ref(), derived.as_deref());
     let warnings = warnings::collect(report, &maps);
     let classes = warnings::render(&warnings) + &class_parts(&maps, &r);
     // The loupe takes what the rest of the page leaves of the budget (the report's JSON, the
@@ -431,6 +462,8 @@ fn build_parts(dir: &Path, report: std::result::Result<&Value, &str>) -> (Parts,
         loupe_step,
         loupe_quality,
         missing: maps.missing.clone(),
+        derived,
+        derived_maps,
         report_error: report.err().map(str::to_string),
     };
     let parts = Parts {
@@ -446,8 +479,13 @@ fn build_parts(dir: &Path, report: std::result::Result<&Value, &str>) -> (Parts,
 
 /// The page for the solve in `dir`, and what was found.
 pub fn build_page(dir: &Path) -> (String, PageSummary) {
+    build_page_with(dir, None)
+}
+
+/// [`build_page`] showing the derive in `derived` (default: the solve's own `derived/`).
+pub fn build_page_with(dir: &Path, derived: Option<&Path>) -> (String, PageSummary) {
     let report = read_report(dir);
-    let (parts, summary) = build_parts(dir, report.as_ref().map_err(String::as_str));
+    let (parts, summary) = build_parts(dir, report.as_ref().map_err(String::as_str), derived);
     // The page is built in the solve's staging folder, whose name is temporary: name it after
     // the set it solved.
     let set_name = report
