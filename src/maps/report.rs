@@ -146,9 +146,11 @@ impl Histogram {
         // count the values in any order.
         let p99 = match finite.len() {
             0 => 1.0,
-            n => *finite
-                .select_nth_unstable_by(((n - 1) as f64 * 0.99) as usize, f64::total_cmp)
-                .1,
+            n => {
+                *finite
+                    .select_nth_unstable_by(((n - 1) as f64 * 0.99) as usize, f64::total_cmp)
+                    .1
+            }
         }
         .max(1e-6);
         let step = 10f64.powf((p99 / BINS as f64).log10().floor());

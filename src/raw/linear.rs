@@ -139,7 +139,10 @@ mod tests {
         let frame = image.to_light_frame(&levels);
         // (dn - 100) / 900, channel by channel, pixel by pixel.
         let expected = |dn: u16| ((dn as f64 - 100.0) / 900.0) as f32;
-        for (c, plane) in [&frame.rgb.r, &frame.rgb.g, &frame.rgb.b].iter().enumerate() {
+        for (c, plane) in [&frame.rgb.r, &frame.rgb.g, &frame.rgb.b]
+            .iter()
+            .enumerate()
+        {
             for i in 0..4 {
                 let want = expected(image.data[i * 3 + c]);
                 assert!((plane.data[i] - want).abs() <= 1e-7, "c{c} px{i}");
@@ -148,7 +151,10 @@ mod tests {
         // Pixels 0 and 3 reached the white level in one channel.
         let clipped = &frame.saturated.as_ref().unwrap().data;
         assert_eq!(clipped, &vec![true, false, false, true]);
-        assert!(frame.rgb.r.data[1] < 0.0, "below black stays negative (noise)");
+        assert!(
+            frame.rgb.r.data[1] < 0.0,
+            "below black stays negative (noise)"
+        );
     }
 
     #[test]

@@ -41,7 +41,10 @@ fn srgb_to_linear(c: f32) -> f32 {
 
 /// Reads a 16-bit RGB PNG as three planes of `value(sample)`, one plane per channel, each
 /// filled on its own thread.
-fn read_png16(path: &Path, value: impl Fn(u16) -> f32 + Sync) -> Result<(usize, usize, [Vec<f32>; 3])> {
+fn read_png16(
+    path: &Path,
+    value: impl Fn(u16) -> f32 + Sync,
+) -> Result<(usize, usize, [Vec<f32>; 3])> {
     let img = image::open(path)
         .map_err(|e| Error::image(path, e))?
         .into_rgb16();
@@ -49,7 +52,12 @@ fn read_png16(path: &Path, value: impl Fn(u16) -> f32 + Sync) -> Result<(usize, 
     let samples = img.as_raw();
     let mut out: [Vec<f32>; 3] = Default::default();
     out.par_iter_mut().enumerate().for_each(|(c, plane)| {
-        *plane = samples.iter().skip(c).step_by(3).map(|&v| value(v)).collect();
+        *plane = samples
+            .iter()
+            .skip(c)
+            .step_by(3)
+            .map(|&v| value(v))
+            .collect();
     });
     Ok((w, h, out))
 }
@@ -393,7 +401,11 @@ pub fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<Rgb
                 .as_ref()
                 .map(|a| view(a, &|v| byte(linear_to_srgb(v))))
         },
-        || maps.normal.as_ref().map(|n| view(n, &|v| byte(v * 0.5 + 0.5))),
+        || {
+            maps.normal
+                .as_ref()
+                .map(|n| view(n, &|v| byte(v * 0.5 + 0.5)))
+        },
     )
 }
 
