@@ -5,7 +5,7 @@
 
 CARGO ?= cargo
 
-.PHONY: demo test deps test-rust test-firmware lint report-screenshots eval
+.PHONY: demo test deps test-rust test-firmware lint report-screenshots eval bench-e2e
 
 demo:
 	$(CARGO) run --release -- demo
@@ -46,3 +46,12 @@ eval:
 	$(CARGO) run --release -- --quiet eval $(EVAL_SETS) --lights 10,20,40,all --estimator ls,adaptive --out docs/eval > /dev/null
 	$(CARGO) test --release --test diligent --test batch -- --ignored
 	$(CARGO) test --release --lib capture::diligent -- --ignored
+
+# The whole `psscan solve` on 16 MP synthetic DNG and dn16 sets, stage by stage, next to the
+# rawpy + NumPy peer (run when $(PYTHON) imports rawpy and numpy). Minutes, a few GiB of disk;
+# not part of make test.
+PYTHON ?= python3
+
+bench-e2e:
+	$(CARGO) build --release
+	$(PYTHON) scripts/bench_e2e.py --python $(PYTHON)

@@ -1,5 +1,5 @@
 //! The one way a set is solved: stage the output folder, open and decode the set, select the
-//! region, solve, write the maps (reading the truth meanwhile), compare with the truth, write
+//! region, solve, write the maps (reading the truth and comparing with it meanwhile), write
 //! `report.json` and `report.html`, and commit the folder.
 
 use std::collections::BTreeMap;
@@ -25,6 +25,9 @@ pub const TRUTH_READ_STAGE: &str = "read truth";
 
 /// The stage of deriving the material from the solved maps (solve with derive options).
 pub const DERIVE_STAGE: &str = "derive";
+
+/// The stage of comparing the solve with the ground truth (beside the maps' writing).
+pub const TRUTH_COMPARE_STAGE: &str = "compare with truth";
 
 /// The stage of building `report.html`.
 pub const REPORT_PAGE_STAGE: &str = "report page";
@@ -90,10 +93,9 @@ struct Solved {
     decode: DecodeInfo,
     window: SensorWindow,
     region: Option<RegionInfo>,
-    mask: Option<Mask>,
     maps: MapOptions,
     outputs: WrittenMaps,
-    truth: Option<Truth>,
+    truth: Option<TruthFigures>,
     decode_s: f64,
     write_s: f64,
 }
@@ -130,12 +132,7 @@ fn run(
     let solved = solve_and_write(source, stage.path(), job, progress, buffers, &mut clock)?;
 
     let report_start = clock.elapsed();
-    let truth = match &solved.truth {
-        Some(truth) => Some(clock.time("compare with truth", || {
-            compare(&solved.result, truth, solved.mask.as_ref(), job)
-        })?),
-        None => None,
-    };
+    let truth = solved.truth;
     let mut report = clock.time("report", || {
         let outputs = relocate(solved.outputs.clone(), out);
         let location = source.location();
@@ -164,7 +161,16 @@ fn run(
     let report_s = clock.elapsed() - report_start;
     if let Some(options) = &job.derive {
         report.derived = Some(clock.time(DERIVE_STAGE, || {
-            derive_into(stage.path(), out, &solved, &report, job, options, progress)
+            derive_into(
+                stage.path(),
+                out,
+                &solved.result,
+                &solved.maps,
+                &report,
+                job,
+                options,
+                progress,
+            )
         })?);
     }
     report.timings_s = BTreeMap::from([
@@ -232,15 +238,24 @@ fn solve_and_write(
         display_matrix: job.maps.display_matrix.or(decode.camera_to_srgb),
         ..job.maps.clone()
     };
-    // The ground truth is read while the maps are written: reading EXRs and writing them
-    // share the cores better than either alone.
+    // The ground truth is read and compared with while the maps are written: reading EXRs,
+    // comparing and writing share the cores better than each alone.
     let write_start = clock.elapsed();
     let mut stages = maps::MAP_STAGES.to_vec();
-    stages.push(TRUTH_READ_STAGE);
+    stages.extend([TRUTH_READ_STAGE, TRUTH_COMPARE_STAGE]);
     let (outputs, truth) = clock.time_shared(&stages, "write maps", |busy| {
         rayon::join(
             || maps::write_maps_timed(&result, dir, &map_options, busy),
-            || busy.time(TRUTH_READ_STAGE, || source.truth(width, height, &decode)),
+            || -> Result<Option<TruthFigures>> {
+                let truth = busy.time(TRUTH_READ_STAGE, || source.truth(width, height, &decode))?;
+                truth
+                    .map(|truth| {
+                        busy.time(TRUTH_COMPARE_STAGE, || {
+                            compare(&result, truth, mask.as_ref(), job)
+                        })
+                    })
+                    .transpose()
+            },
         )
     });
     let outputs = outputs?;
@@ -251,7 +266,6 @@ fn solve_and_write(
         decode,
         window,
         region: (!job.region.is_full()).then_some(region_info),
-        mask,
         maps: map_options,
         outputs,
         truth,
@@ -264,13 +278,13 @@ fn solve_and_write(
 /// were, over every pixel; normal truth over the solve's mask.
 fn compare(
     result: &SolveResult,
-    truth: &Truth,
+    truth: Truth,
     mask: Option<&Mask>,
     job: &SolveJob,
 ) -> Result<TruthFigures> {
     match truth {
         Truth::Surface { normal, albedo } => {
-            let (normal, albedo) = region_truth((normal.clone(), albedo.clone()), &job.region)?;
+            let (normal, albedo) = region_truth((normal, albedo), &job.region)?;
             let errors: Vec<f64> = eval::normal_errors_deg(result, &normal)
                 .into_iter()
                 .flatten()
@@ -283,13 +297,13 @@ fn compare(
         Truth::Normals(normal) => {
             let everywhere = Mask::new(result.width, result.height, true);
             let mask = mask.unwrap_or(&everywhere);
-            let errors: Vec<f64> = (eval::normal_errors_deg(result, normal).into_iter())
+            let errors: Vec<f64> = (eval::normal_errors_deg(result, &normal).into_iter())
                 .zip(&mask.data)
                 .filter_map(|(e, &inside)| e.filter(|_| inside))
                 .collect();
             Ok(TruthFigures {
                 comparison: TruthComparisonKind::Normals(eval::compare_normals_over_mask(
-                    result, normal, mask,
+                    result, &normal, mask,
                 )),
                 histogram: Histogram::of_errors(&errors),
             })
@@ -302,15 +316,16 @@ fn compare(
 fn derive_into(
     stage: &Path,
     out: &Path,
-    solved: &Solved,
+    result: &SolveResult,
+    map_options: &MapOptions,
     report: &Report,
     job: &SolveJob,
     options: &DeriveOptions,
     progress: &dyn Progress,
 ) -> Result<serde_json::Value> {
     let maps = SolvedMaps::from_result(
-        &solved.result,
-        solved.maps.display_matrix.as_ref(),
+        result,
+        map_options.display_matrix.as_ref(),
         report.pixel_size_mm,
         job.options.robust.sheen,
     );

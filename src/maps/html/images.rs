@@ -6,6 +6,7 @@ use std::path::Path;
 
 use image::{ImageEncoder, RgbImage};
 use jpeg_encoder::SamplingFactor;
+use rayon::prelude::*;
 
 use super::relight::{linear_to_srgb, RelightTextures};
 use crate::error::{Error, Result};
@@ -38,18 +39,35 @@ fn srgb_to_linear(c: f32) -> f32 {
     }
 }
 
-fn read_png16(path: &Path) -> Result<(usize, usize, [Vec<f32>; 3])> {
+/// Reads a 16-bit RGB PNG as three planes of `value(sample)`, one plane per channel, each
+/// filled on its own thread.
+fn read_png16(
+    path: &Path,
+    value: impl Fn(u16) -> f32 + Sync,
+) -> Result<(usize, usize, [Vec<f32>; 3])> {
     let img = image::open(path)
         .map_err(|e| Error::image(path, e))?
         .into_rgb16();
     let (w, h) = (img.width() as usize, img.height() as usize);
-    let mut out: [Vec<f32>; 3] = std::array::from_fn(|_| Vec::with_capacity(w * h));
-    for px in img.pixels() {
-        for c in 0..3 {
-            out[c].push(px.0[c] as f32 / 65535.0);
-        }
-    }
+    let samples = img.as_raw();
+    let mut out: [Vec<f32>; 3] = Default::default();
+    out.par_iter_mut().enumerate().for_each(|(c, plane)| {
+        *plane = samples
+            .iter()
+            .skip(c)
+            .step_by(3)
+            .map(|&v| value(v))
+            .collect();
+    });
     Ok((w, h, out))
+}
+
+/// `srgb_to_linear(v / 65535)` for every 16-bit value: the same `f32`s as computing it per
+/// sample, without a `powf` per sample of a 16 MP map.
+fn srgb16_to_linear_table() -> Vec<f32> {
+    (0..=u16::MAX)
+        .map(|v| srgb_to_linear(v as f32 / 65535.0))
+        .collect()
 }
 
 fn planes(w: usize, h: usize, data: [Vec<f32>; 3]) -> Result<[Plane; 3]> {
@@ -64,10 +82,8 @@ fn planes(w: usize, h: usize, data: [Vec<f32>; 3]) -> Result<[Plane; 3]> {
 fn read_albedo(dir: &Path) -> Result<[Plane; 3]> {
     let png = dir.join("albedo.png");
     if png.exists() {
-        let (w, h, mut data) = read_png16(&png)?;
-        for channel in &mut data {
-            channel.iter_mut().for_each(|v| *v = srgb_to_linear(*v));
-        }
+        let table = srgb16_to_linear_table();
+        let (w, h, data) = read_png16(&png, |v| table[v as usize])?;
         return planes(w, h, data);
     }
     let exr = dir.join("albedo.exr");
@@ -87,10 +103,7 @@ fn read_normal(dir: &Path, convention: NormalConvention) -> Result<[Plane; 3]> {
     let png = dir.join("normal.png");
     let exr = dir.join("normal.exr");
     let [x, mut y, z] = if png.exists() {
-        let (w, h, mut data) = read_png16(&png)?;
-        for channel in &mut data {
-            channel.iter_mut().for_each(|v| *v = *v * 2.0 - 1.0);
-        }
+        let (w, h, data) = read_png16(&png, |v| v as f32 / 65535.0 * 2.0 - 1.0)?;
         planes(w, h, data)?
     } else if exr.exists() {
         read_exr(&exr, &["R", "G", "B"])?
@@ -123,9 +136,14 @@ impl FullMaps {
     /// Reads what the solve folder holds; a missing or unreadable map is noted, not fatal.
     pub fn read(dir: &Path, convention: NormalConvention) -> FullMaps {
         let mut missing = Vec::new();
-        let albedo = keep(read_albedo(dir), &mut missing);
-        let normal = keep(read_normal(dir, convention), &mut missing);
-        let confidence = keep(read_confidence(dir), &mut missing);
+        // Three files, read side by side.
+        let (albedo, (normal, confidence)) = rayon::join(
+            || read_albedo(dir),
+            || rayon::join(|| read_normal(dir, convention), || read_confidence(dir)),
+        );
+        let albedo = keep(albedo, &mut missing);
+        let normal = keep(normal, &mut missing);
+        let confidence = keep(confidence, &mut missing);
         let sizes: Vec<(usize, usize)> = [
             albedo.as_ref().map(|p| &p[0]),
             normal.as_ref().map(|p| &p[0]),
@@ -207,6 +225,26 @@ impl Reduction {
     }
 }
 
+/// An RGB image of `width x height` whose pixel `(x, y)` is `pixel(x, y)`, its rows filled in
+/// parallel (the same image as `RgbImage::from_fn`).
+pub fn par_image(
+    width: usize,
+    height: usize,
+    pixel: impl Fn(usize, usize) -> [u8; 3] + Sync,
+) -> RgbImage {
+    let mut data = vec![0u8; width * height * 3];
+    if width > 0 {
+        data.par_chunks_mut(width * 3)
+            .enumerate()
+            .for_each(|(y, row)| {
+                for (x, px) in row.chunks_exact_mut(3).enumerate() {
+                    px.copy_from_slice(&pixel(x, y));
+                }
+            });
+    }
+    RgbImage::from_raw(width as u32, height as u32, data).expect("the buffer fits the size")
+}
+
 fn byte(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0).round() as u8
 }
@@ -216,31 +254,43 @@ fn byte(v: f32) -> u8 {
 pub fn relight_textures(maps: &FullMaps, r: &Reduction) -> Option<RelightTextures> {
     let (albedo, normal) = (maps.albedo.as_ref()?, maps.normal.as_ref()?);
     let (w, h) = (maps.width, maps.height);
-    let mut a_img = RgbImage::new(r.width as u32, r.height as u32);
-    let mut n_img = RgbImage::new(r.width as u32, r.height as u32);
-    for y in 0..r.height {
-        for x in 0..r.width {
-            let (mut a, mut n, mut count) = ([0f64; 3], [0f64; 3], 0usize);
-            for i in r.block(w, h, x, y).filter(|&i| maps.solved(i)) {
-                for c in 0..3 {
-                    a[c] += albedo[c].data[i] as f64;
-                    n[c] += normal[c].data[i] as f64;
-                }
-                count += 1;
+    let pixel = |x: usize, y: usize| {
+        let (mut a, mut n, mut count) = ([0f64; 3], [0f64; 3], 0usize);
+        for i in r.block(w, h, x, y).filter(|&i| maps.solved(i)) {
+            for c in 0..3 {
+                a[c] += albedo[c].data[i] as f64;
+                n[c] += normal[c].data[i] as f64;
             }
-            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-            let (ap, np) = if count == 0 || len == 0.0 || !len.is_finite() {
-                ([0u8; 3], [0u8; 3])
-            } else {
-                (
-                    a.map(|v| byte(linear_to_srgb((v / count as f64) as f32))),
-                    n.map(|v| byte(((v / len) * 0.5 + 0.5) as f32)),
-                )
-            };
-            a_img.put_pixel(x as u32, y as u32, image::Rgb(ap));
-            n_img.put_pixel(x as u32, y as u32, image::Rgb(np));
+            count += 1;
         }
+        let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        if count == 0 || len == 0.0 || !len.is_finite() {
+            ([0u8; 3], [0u8; 3])
+        } else {
+            (
+                a.map(|v| byte(linear_to_srgb((v / count as f64) as f32))),
+                n.map(|v| byte(((v / len) * 0.5 + 0.5) as f32)),
+            )
+        }
+    };
+    let row_bytes = r.width * 3;
+    let mut a_data = vec![0u8; row_bytes * r.height];
+    let mut n_data = vec![0u8; row_bytes * r.height];
+    if row_bytes > 0 {
+        a_data
+            .par_chunks_mut(row_bytes)
+            .zip(n_data.par_chunks_mut(row_bytes))
+            .enumerate()
+            .for_each(|(y, (a_row, n_row))| {
+                for x in 0..r.width {
+                    let (a, n) = pixel(x, y);
+                    a_row[x * 3..x * 3 + 3].copy_from_slice(&a);
+                    n_row[x * 3..x * 3 + 3].copy_from_slice(&n);
+                }
+            });
     }
+    let image = |data| RgbImage::from_raw(r.width as u32, r.height as u32, data);
+    let (a_img, n_img) = (image(a_data)?, image(n_data)?);
     Some(RelightTextures {
         albedo: a_img,
         normal: n_img,
@@ -248,17 +298,21 @@ pub fn relight_textures(maps: &FullMaps, r: &Reduction) -> Option<RelightTexture
 }
 
 /// A class map at display size: each block takes its most common class.
-pub fn class_image(plane: &Plane, r: &Reduction, colour: impl Fn(u8) -> [u8; 3]) -> RgbImage {
+pub fn class_image(
+    plane: &Plane,
+    r: &Reduction,
+    colour: impl Fn(u8) -> [u8; 3] + Sync,
+) -> RgbImage {
     let (w, h) = (plane.width, plane.height);
-    RgbImage::from_fn(r.width as u32, r.height as u32, |x, y| {
+    par_image(r.width, r.height, |x, y| {
         let mut counts = [0usize; 256];
-        for i in r.block(w, h, x as usize, y as usize) {
+        for i in r.block(w, h, x, y) {
             counts[plane.data[i].clamp(0.0, 255.0) as usize] += 1;
         }
         let class = (0..256)
             .max_by_key(|&c| (counts[c], std::cmp::Reverse(c)))
             .unwrap_or(0);
-        image::Rgb(colour(class as u8))
+        colour(class as u8)
     })
 }
 
@@ -311,19 +365,19 @@ pub fn scale_max(plane: &Plane, maps: &FullMaps) -> f32 {
 /// A continuous map at display size: block means over solved pixels, viridis over `[0, max]`.
 pub fn scalar_image(plane: &Plane, maps: &FullMaps, r: &Reduction, max: f32) -> RgbImage {
     let (w, h) = (plane.width, plane.height);
-    RgbImage::from_fn(r.width as u32, r.height as u32, |x, y| {
+    par_image(r.width, r.height, |x, y| {
         let (mut sum, mut count) = (0f64, 0usize);
-        for i in r.block(w, h, x as usize, y as usize) {
+        for i in r.block(w, h, x, y) {
             if maps.solved(i) && plane.data[i].is_finite() {
                 sum += plane.data[i] as f64;
                 count += 1;
             }
         }
-        image::Rgb(if count == 0 {
+        if count == 0 {
             NO_VALUE
         } else {
             viridis((sum / count as f64) as f32 / max)
-        })
+        }
     })
 }
 
@@ -335,19 +389,23 @@ pub fn viridis_legend() -> RgbImage {
 /// Full-resolution 8-bit views for the loupe: sRGB albedo and the OpenGL normal encoding.
 pub fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<RgbImage>) {
     let (w, h) = (maps.width.div_ceil(step), maps.height.div_ceil(step));
-    let view = |planes: &[Plane; 3], f: &dyn Fn(f32) -> u8| {
-        RgbImage::from_fn(w as u32, h as u32, |x, y| {
-            let i = y as usize * step * maps.width + x as usize * step;
-            image::Rgb(std::array::from_fn(|c| f(planes[c].data[i])))
+    let view = |planes: &[Plane; 3], f: &(dyn Fn(f32) -> u8 + Sync)| {
+        par_image(w, h, |x, y| {
+            let i = y * step * maps.width + x * step;
+            std::array::from_fn(|c| f(planes[c].data[i]))
         })
     };
-    (
-        maps.albedo
-            .as_ref()
-            .map(|a| view(a, &|v| byte(linear_to_srgb(v)))),
-        maps.normal
-            .as_ref()
-            .map(|n| view(n, &|v| byte(v * 0.5 + 0.5))),
+    rayon::join(
+        || {
+            maps.albedo
+                .as_ref()
+                .map(|a| view(a, &|v| byte(linear_to_srgb(v))))
+        },
+        || {
+            maps.normal
+                .as_ref()
+                .map(|n| view(n, &|v| byte(v * 0.5 + 0.5)))
+        },
     )
 }
 

@@ -415,12 +415,21 @@ fn build_parts(
 ) -> (Parts, PageSummary) {
     let maps = FullMaps::read(dir, normal_convention(report.ok()));
     let r = Reduction::for_size(maps.width, maps.height);
-    let textures = images::relight_textures(&maps, &r);
-    let (frames, frames_data) = frames_part(dir, report.ok());
     let derived = derived::locate(dir, derived);
-    let (map_html, derived_maps) = map_parts(&maps, textures.as_ref(), derived.as_deref());
-    let warnings = warnings::collect(report, &maps);
-    let classes = warnings::render(&warnings) + &class_parts(&maps, &r);
+    // The display-size parts are independent of each other: built side by side.
+    let ((textures, (map_html, derived_maps)), (classes, (frames, frames_data))) = rayon::join(
+        || {
+            let textures = images::relight_textures(&maps, &r);
+            let map_html = map_parts(&maps, textures.as_ref(), derived.as_deref());
+            (textures, map_html)
+        },
+        || {
+            rayon::join(
+                || warnings::render(&warnings::collect(report, &maps)) + &class_parts(&maps, &r),
+                || frames_part(dir, report.ok()),
+            )
+        },
+    );
     // The loupe takes what the rest of the page leaves of the budget (the report's JSON, the
     // template, script and shaders, and a margin for the titles).
     let rest = map_html.len()

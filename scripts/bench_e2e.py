@@ -1,0 +1,163 @@
+#!/usr/bin/env python3
+"""End-to-end benchmark of `psscan solve` (issue 18): the whole command on a synthetic 16 MP
+set, stage by stage, next to the Python peer (scripts/peer_rawpy.py: rawpy + NumPy).
+
+It renders one scene twice (`psscan synth`: the DNG RAW set and the dn16 16-bit PNG set), then
+runs, round after round so that every configuration sees the same machine load:
+  dng full    `psscan solve DNG` with the defaults
+  dng half    `psscan solve DNG --resolution half` (the operator's preview)
+  dn16 full   `psscan solve DN16`
+  peer        `peer_rawpy.py DNG` (half resolution, one normal PNG), when the Python given by
+              --python imports rawpy and numpy; skipped with a note otherwise
+Each configuration's figure is the median whole-process wall time over the rounds; its stage
+table (report.json "stages", which adds up to the solve's total) is the median run's.
+
+Usage: bench_e2e.py [--psscan BIN] [--python PY] [--width W --height H] [--rounds N]
+                    [--work DIR] [--keep] [--json]
+Needs only the Python standard library; the peer needs rawpy and numpy in --python. Not part
+of `make test` (it takes minutes and needs a few GiB of disk): `make bench-e2e` runs it.
+"""
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+PEER = os.path.join(HERE, "peer_rawpy.py")
+
+
+def run(cmd, **kw):
+    start = time.perf_counter()
+    done = subprocess.run(cmd, capture_output=True, text=True, **kw)
+    wall = time.perf_counter() - start
+    if done.returncode != 0:
+        sys.exit(f"bench_e2e: {' '.join(cmd)} failed ({done.returncode}):\n{done.stderr}")
+    return wall, done.stdout
+
+
+def peer_available(python):
+    try:
+        probe = subprocess.run([python, "-c", "import rawpy, numpy"], capture_output=True)
+    except OSError:
+        return False
+    return probe.returncode == 0
+
+
+def synth(psscan, out, encoding, width, height):
+    wall, _ = run([psscan, "--quiet", "synth", "--out", out, "--width", str(width),
+                   "--height", str(height), "--encoding", encoding, "--force"])
+    return wall
+
+
+def solve(psscan, set_dir, out, extra):
+    shutil.rmtree(out, ignore_errors=True)
+    wall, stdout = run([psscan, "--quiet", "solve", set_dir, "--out", out, "--json"] + extra)
+    report = json.loads(stdout)
+    return {"wall_s": wall, "stages": report.get("stages", []),
+            "total_s": report.get("timings_s", {}).get("total")}
+
+
+def peer(python, set_dir, out_png):
+    wall, stdout = run([python, PEER, set_dir, out_png])
+    figures = json.loads(stdout.strip().splitlines()[-1])
+    stages = [{"stage": k[:-2], "seconds": v} for k, v in figures.items()
+              if k.endswith("_s") and k != "total_s"]
+    return {"wall_s": wall, "stages": stages, "total_s": figures.get("total_s")}
+
+
+def median_run(runs):
+    walls = [r["wall_s"] for r in runs]
+    mid = statistics.median_low(walls)
+    chosen = next(r for r in runs if r["wall_s"] == mid)
+    return dict(chosen, wall_s=statistics.median(walls), walls_s=walls)
+
+
+def table(results):
+    names = list(results)
+    stages = []
+    for r in results.values():
+        for row in r["stages"]:
+            if row["stage"] not in stages:
+                stages.append(row["stage"])
+    width = max([len(s) for s in stages] + [24])
+    lines = [f"{'stage (s)':<{width}}" + "".join(f"{n:>12}" for n in names)]
+    for stage in stages:
+        cells = []
+        for r in results.values():
+            v = next((row["seconds"] for row in r["stages"] if row["stage"] == stage), None)
+            cells.append(f"{v:12.3f}" if v is not None else f"{'':>12}")
+        lines.append(f"{stage:<{width}}" + "".join(cells))
+    for key, label in [("total_s", "total (in-process)"), ("wall_s", "wall (whole process)")]:
+        cells = "".join(f"{r[key]:12.3f}" if r.get(key) is not None else f"{'':>12}"
+                        for r in results.values())
+        lines.append(f"{label:<{width}}" + cells)
+    return "\n".join(lines)
+
+
+def main():
+    root = os.path.dirname(HERE)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--psscan", default=os.path.join(root, "target", "release", "psscan"))
+    parser.add_argument("--python", default=sys.executable,
+                        help="the Python that runs the peer (needs rawpy and numpy)")
+    parser.add_argument("--width", type=int, default=4928)
+    parser.add_argument("--height", type=int, default=3264)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--work", help="folder for the sets and outputs (default: a temporary one)")
+    parser.add_argument("--keep", action="store_true", help="keep the sets and outputs")
+    parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    args = parser.parse_args()
+    if not os.access(args.psscan, os.X_OK):
+        sys.exit(f"bench_e2e: {args.psscan} not found: build it first (cargo build --release)")
+    work = args.work or tempfile.mkdtemp(prefix="psscan-bench-e2e-")
+    os.makedirs(work, exist_ok=True)
+    log = sys.stderr
+    try:
+        dng, dn16 = os.path.join(work, "dng"), os.path.join(work, "dn16")
+        print(f"rendering {args.width}x{args.height} sets in {work} ...", file=log)
+        synth(args.psscan, dng, "dng", args.width, args.height)
+        synth(args.psscan, dn16, "dn16", args.width, args.height)
+        configs = {
+            "dng full": lambda o: solve(args.psscan, dng, o, []),
+            "dng half": lambda o: solve(args.psscan, dng, o, ["--resolution", "half"]),
+            "dn16 full": lambda o: solve(args.psscan, dn16, o, []),
+        }
+        note = None
+        if peer_available(args.python):
+            configs["peer (half)"] = lambda o: peer(args.python, dng, o + ".png")
+        else:
+            note = f"peer skipped: {args.python} cannot import rawpy and numpy"
+            print(note, file=log)
+        runs = {name: [] for name in configs}
+        for k in range(args.rounds):
+            for name, go in configs.items():
+                out = os.path.join(work, "out-" + name.replace(" ", "-").replace("(", "")
+                                   .replace(")", ""))
+                runs[name].append(go(out))
+                print(f"round {k + 1}/{args.rounds} {name}: {runs[name][-1]['wall_s']:.2f} s",
+                      file=log)
+        results = {name: median_run(r) for name, r in runs.items()}
+        if args.json:
+            print(json.dumps({"width": args.width, "height": args.height,
+                              "rounds": args.rounds, "note": note, "results": results},
+                             indent=2))
+        else:
+            print(table(results))
+            if "peer (half)" in results:
+                p = results["peer (half)"]["wall_s"]
+                for name in ("dng full", "dng half"):
+                    print(f"{name}: {p / results[name]['wall_s']:.2f}x the peer's speed")
+            if note:
+                print(note)
+    finally:
+        if not args.keep:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
