@@ -9,7 +9,7 @@ use super::{open, SetSource, SolveJob, Truth};
 use crate::error::Result;
 use crate::eval;
 use crate::fsutil::{check_outside_inputs, write_atomic, StagedDir};
-use crate::maps::derive::{self, DeriveOptions, DeriveSource, SolvedMaps};
+use crate::maps::derive::{self, DeriveSource, SolvedMaps};
 use crate::maps::html::derived::DERIVED_DIR;
 use crate::maps::report::Histogram;
 use crate::maps::{self, MapOptions, Report, WrittenMaps};
@@ -159,7 +159,7 @@ fn run(
     });
     report.decode = Some(solved.decode.clone());
     let report_s = clock.elapsed() - report_start;
-    if let Some(options) = &job.derive {
+    if job.derive.is_some() {
         report.derived = Some(clock.time(DERIVE_STAGE, || {
             derive_into(
                 stage.path(),
@@ -320,9 +320,9 @@ fn derive_into(
     map_options: &MapOptions,
     report: &Report,
     job: &SolveJob,
-    options: &DeriveOptions,
     progress: &dyn Progress,
 ) -> Result<serde_json::Value> {
+    let options = job.derive.as_ref().expect("called only with derive options");
     let maps = SolvedMaps::from_result(
         result,
         map_options.display_matrix.as_ref(),
