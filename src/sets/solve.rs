@@ -168,7 +168,6 @@ fn run(
                 &solved.maps,
                 &report,
                 job,
-                options,
                 progress,
             )
         })?);
@@ -322,7 +321,10 @@ fn derive_into(
     job: &SolveJob,
     progress: &dyn Progress,
 ) -> Result<serde_json::Value> {
-    let options = job.derive.as_ref().expect("called only with derive options");
+    let options = job
+        .derive
+        .as_ref()
+        .expect("called only with derive options");
     let maps = SolvedMaps::from_result(
         result,
         map_options.display_matrix.as_ref(),
