@@ -141,8 +141,9 @@ pub(super) fn refine(
 /// rejection finds lights that pass the chi-square test (cast shadows on a surface the model
 /// holds for), it judges each light in units of sensor noise, more finely than any scale taken
 /// from the pixel's own residuals; only where it does not (the model error of real surfaces)
-/// the data-scaled fit decides. A configured sheen model never comes here: it is the user's
-/// account of the model error.
+/// the data-scaled fit decides. A passing rejection whose normal turns away from a light the
+/// pixel reads lit is not a solution ([`lit_behind_surface`]): the pixel keeps least squares.
+/// A configured sheen model never comes here: it is the user's account of the model error.
 fn noise_or_data_scaled(
     context: &Context,
     measurements: &mut Vec<Measurement>,
@@ -159,6 +160,16 @@ fn noise_or_data_scaled(
     let noise = reject_outliers(context, measurements, buffers, start);
     if let Some(weighted) = noise {
         if chi.accepts_statistic(weighted.chi2, measurements.len()) {
+            let contradicted =
+                lit_behind_surface(&usable, &weighted.n_lum, context.options.outlier_sigma);
+            if contradicted {
+                // The kept lights' normal cannot be the surface's: least squares over all
+                // lights is the fit that does not rest on a rejection the data contradict.
+                measurements.clear();
+                measurements.extend_from_slice(&usable);
+                buffers.noise_usable = usable;
+                return least_squares;
+            }
             buffers.noise_usable = usable;
             let rejected = measurements.len() < usable_count;
             return weighted.into_fit(chi, measurements, condition, rejected);
@@ -195,6 +206,18 @@ fn noise_or_data_scaled(
         &least_squares.n_lum,
     )
     .unwrap_or(least_squares)
+}
+
+/// True when `n_lum` turns away from a light (`n . l <= 0`) that `all` reads lit by more than
+/// `sigma` of its noise deviation. Direct light cannot reach a surface from behind it: cast
+/// shadows only darken and highlights need `n . l > 0`, so under a noise model that explains
+/// the lights a rejection kept, such a reading contradicts the kept lights' normal rather than
+/// being an outlier against it. (Where the rejected lights are instead the grazing readings a
+/// pixel's footprint blends across the terminator, dropping the brighter-than-predicted ones
+/// leaves a subset that fits exactly a normal tilted away from the lit side.)
+fn lit_behind_surface(all: &[Measurement], n_lum: &Vector3<f64>, sigma: f64) -> bool {
+    all.iter()
+        .any(|m| n_lum.dot(&m.l) <= 0.0 && m.lum > sigma * m.test_var.sqrt())
 }
 
 /// At most this many rounds of lobe removal, rejection and sheen refit. Each round's normal
@@ -521,4 +544,40 @@ fn darkest_outlier(chi: &ChiSquare, measurements: &[Measurement], sigma: f64) ->
         }
     }
     darkest
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One light of unit noise deviation reading `lum` from direction `l`.
+    fn reading(l: Vector3<f64>, lum: f64) -> Measurement {
+        Measurement {
+            l: l.normalize(),
+            rgb: [lum; 3],
+            lum,
+            var: 1.0,
+            test_var: 1.0,
+            light: 0,
+        }
+    }
+
+    #[test]
+    fn a_light_read_lit_behind_the_normal_contradicts_it() {
+        let n = Vector3::new(0.0, 0.0, 100.0);
+        let behind = Vector3::new(1.0, 0.0, -0.1);
+        let front = Vector3::new(0.3, 0.0, 1.0);
+        let sigma = 4.0;
+        // Behind the surface, a reading beyond `sigma` noise deviations is light the normal
+        // cannot receive; one within them is the noise of an unlit reading.
+        assert!(lit_behind_surface(&[reading(behind, 4.5)], &n, sigma));
+        assert!(!lit_behind_surface(&[reading(behind, 3.5)], &n, sigma));
+        // In front of it any reading is possible (a highlight or a cast shadow).
+        assert!(!lit_behind_surface(&[reading(front, 1e3)], &n, sigma));
+        assert!(lit_behind_surface(
+            &[reading(front, 1e3), reading(behind, 50.0)],
+            &n,
+            sigma
+        ));
+    }
 }
