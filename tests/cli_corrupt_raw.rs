@@ -71,6 +71,13 @@ fn refused(set: &Path, out_dir: &Path) -> String {
     assert_eq!(out.status.code(), Some(1), "{err}");
     assert!(err.contains("L03.dng"), "{err}");
     assert!(!out_dir.exists(), "nothing is written for a refused set");
+    let name = out_dir.file_name().unwrap().to_string_lossy().into_owned();
+    let parent = out_dir.parent().unwrap();
+    let debris: Vec<String> = (std::fs::read_dir(parent).unwrap())
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(&format!("{name}.")))
+        .collect();
+    assert!(debris.is_empty(), "staging left behind: {debris:?}");
     err
 }
 
@@ -100,9 +107,7 @@ fn damaged_bytes_in_a_dng_frames_compressed_data_are_refused_naming_the_frame() 
     );
 
     // A few damaged bytes in the entropy-coded data: the frame decodes to garbage, which the
-    // set's checks catch (mostly clipped; samples far below the dark frame's level). Damage
-    // that leaves the decoded values in range (at 0x3000 in this frame) is not caught yet:
-    // that needs the Lambertian consistency check across lights.
+    // set's checks catch (mostly clipped; samples far below the dark frame's level).
     for (k, at) in [(1, 0x1000), (3, 0x6000)] {
         let data = t.join(format!("data{k}"));
         synth_dng(&data);
@@ -115,5 +120,34 @@ fn damaged_bytes_in_a_dng_frames_compressed_data_are_refused_naming_the_frame() 
         });
         let err = refused(&data, &t.join(format!("data{k}-out")));
         assert!(err.contains("garbage"), "{err}");
+    }
+}
+
+/// Damage whose garbage stays in range (no clipping, nothing below black: at 0x800 of this
+/// frame's first tile the stream decodes to values offset from the truth over the rest of the
+/// tile) passes every per-frame check; the Lambertian consistency check across the lights
+/// refuses it, naming the frame, and nothing is written.
+#[test]
+fn in_range_garbage_in_one_frame_is_refused_by_the_consistency_check() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    let set = t.join("set");
+    synth_dng(&set);
+    damage(&set, |b, tiles| {
+        let (start, len) = tiles[0];
+        let at = 0x800;
+        assert!(at + 4 * 97 < len);
+        for i in 0..4 {
+            b[start + at + 97 * i] ^= 0x5A;
+        }
+    });
+    let err = refused(&set, &t.join("out"));
+    assert!(
+        err.contains("disagree with the rest of the set") && !err.contains("clipped"),
+        "{err}"
+    );
+    // Only the damaged frame is named.
+    for k in (0..10).filter(|&k| k != 3) {
+        assert!(!err.contains(&format!("L{k:02}.dng")), "{err}");
     }
 }

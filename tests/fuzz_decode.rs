@@ -336,11 +336,14 @@ fn damaged_compressed_streams_stay_within_memory_and_time_caps() {
         .unwrap_or(1);
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(0xda7a);
     let (mut decoded, mut refused) = (0, 0);
+    let mut slowest = std::time::Duration::ZERO;
     for n in 0..60 * scale {
         let name = format!("damaged-{n}.dng");
         let path = dir.path().join(&name);
         std::fs::write(&path, mutate_stream(&mut rng, &dng, &segments)).unwrap();
+        let started = std::time::Instant::now();
         let out = decode_in_child(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
+        slowest = slowest.max(started.elapsed());
         // The harness writes "test decode_child ... " before the child's own output.
         let outcome = |tag: &str| out.lines().find_map(|l| l.find(tag).map(|i| &l[i..]));
         if let Some(line) = outcome("DECODED ") {
@@ -354,7 +357,20 @@ fn damaged_compressed_streams_stay_within_memory_and_time_caps() {
         }
     }
     eprintln!(
-        "damaged streams: {decoded} decoded (to be judged by the set's checks), {refused} refused"
+        "damaged streams: {decoded} decoded (to be judged by the set's checks), {refused} \
+         refused; slowest child {slowest:?}, largest child peak resident set {} MiB",
+        children_peak_rss_kib() / 1024
     );
     assert!(refused > 0);
+}
+
+/// The largest peak resident set (KiB) of any child this process has waited for: what the
+/// worst damaged stream cost, beside the cap it ran under.
+fn children_peak_rss_kib() -> i64 {
+    // SAFETY: getrusage fills the zeroed struct it is given and nothing else.
+    unsafe {
+        let mut usage: libc::rusage = std::mem::zeroed();
+        libc::getrusage(libc::RUSAGE_CHILDREN, &mut usage);
+        usage.ru_maxrss
+    }
 }

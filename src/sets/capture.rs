@@ -94,6 +94,13 @@ impl SetSource for CaptureSource {
         Ok((loaded.frames, decode))
     }
 
+    fn frame_names(&self) -> Vec<String> {
+        (self.light_records().into_iter())
+            .enumerate()
+            .map(|(k, r)| r.frame.unwrap_or_else(|| format!("light {k}")))
+            .collect()
+    }
+
     fn lights(&self) -> LightSource<'_> {
         match self.gains() {
             Some(gains) => LightSource::Calibrated {

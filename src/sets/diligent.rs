@@ -67,6 +67,10 @@ impl SetSource for DiligentSource {
         Ok((frames, decode_info()))
     }
 
+    fn frame_names(&self) -> Vec<String> {
+        self.set.files.clone()
+    }
+
     fn lights(&self) -> LightSource<'_> {
         LightSource::Directions {
             directions: &self.set.directions,

@@ -63,6 +63,11 @@ pub trait SetSource: Sync {
     ) -> Result<(Frames, DecodeInfo)>;
     /// The lights the frames were taken under.
     fn lights(&self) -> LightSource<'_>;
+    /// The file each light's frame came from, in frame order, for messages that name a
+    /// frame (empty when the frames have no files).
+    fn frame_names(&self) -> Vec<String> {
+        Vec::new()
+    }
     /// The noise of frames decoded as `decode` says.
     fn noise(&self, decode: &DecodeInfo) -> NoiseModel;
     /// The set's own mask of pixels to solve (an object mask), at the frames' size.

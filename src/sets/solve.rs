@@ -6,18 +6,19 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use super::{open, SetSource, SolveJob, Truth};
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::eval;
 use crate::fsutil::{check_outside_inputs, write_atomic, StagedDir};
 use crate::maps::derive::{self, DeriveSource, SolvedMaps};
 use crate::maps::html::derived::DERIVED_DIR;
 use crate::maps::report::Histogram;
 use crate::maps::{self, MapOptions, Report, WrittenMaps};
-use crate::plane::{Mask, SensorWindow};
+use crate::plane::{Frames, Mask, SensorWindow};
 use crate::progress::Progress;
 use crate::raw::DecodeInfo;
 use crate::region::{region_truth, select_region, RegionInfo};
-use crate::solve::{self, SolveInput, SolveResult};
+use crate::solve::consistency::{frame_consistency, BLOCKS};
+use crate::solve::{self, LightSource, NoiseModel, SolveInput, SolveResult};
 use crate::timing::StageClock;
 
 /// The stage of reading a set's ground truth (beside the maps' writing).
@@ -28,6 +29,9 @@ pub const DERIVE_STAGE: &str = "derive";
 
 /// The stage of comparing the solve with the ground truth (beside the maps' writing).
 pub const TRUTH_COMPARE_STAGE: &str = "compare with truth";
+
+/// The stage of checking that the frames agree with one another.
+pub const CONSISTENCY_STAGE: &str = "frame consistency";
 
 /// The stage of building `report.html`.
 pub const REPORT_PAGE_STAGE: &str = "report page";
@@ -211,6 +215,9 @@ fn solve_and_write(
     let lights = source.lights();
     let noise = clock.time("noise model", || source.noise(&decode));
     let own_mask = source.mask(&frames)?;
+    clock.time(CONSISTENCY_STAGE, || {
+        check_consistency(source, &frames, &lights, &noise, own_mask.as_ref(), job)
+    })?;
     let (frames, region_mask, noise, region_info) = clock.time("region", || {
         select_region(frames, &lights, noise, &job.region)
     })?;
@@ -271,6 +278,52 @@ fn solve_and_write(
         decode_s,
         write_s,
     })
+}
+
+/// Refuses a set with a frame that disagrees with what the other frames say the surface is
+/// (a frame decoded to in-range garbage), naming the frame's file.
+fn check_consistency(
+    source: &dyn SetSource,
+    frames: &Frames,
+    lights: &LightSource,
+    noise: &NoiseModel,
+    mask: Option<&Mask>,
+    job: &SolveJob,
+) -> Result<()> {
+    let consistency = frame_consistency(frames, lights, job.options.light_model, noise, mask)?;
+    let names = source.frame_names();
+    let name = |k: usize| {
+        names
+            .get(k)
+            .cloned()
+            .unwrap_or_else(|| format!("light {k}"))
+    };
+    let problems: Vec<String> = (consistency.inconsistent().into_iter())
+        .map(|k| {
+            let f = &consistency.frames[k];
+            format!(
+                "{}: in the image block at column {}, row {} of {BLOCKS}x{BLOCKS} its residual from the \
+                 other frames' fit is {:.1} times the median frame's there and {:.0} times its \
+                 noise",
+                name(k),
+                f.worst_block.0,
+                f.worst_block.1,
+                f.worst_ratio,
+                f.worst_scale
+            )
+        })
+        .collect();
+    if problems.is_empty() {
+        return Ok(());
+    }
+    Err(Error::capture_set(
+        source.location(),
+        format!(
+            "frames that disagree with the rest of the set (decoded to garbage: a damaged file \
+             whose checksum was updated, or a fault in the camera): {}; re-shoot them",
+            problems.join("; ")
+        ),
+    ))
 }
 
 /// The solve against the set's ground truth: surface truth cropped and binned as the frames

@@ -13,6 +13,7 @@
 // screen. `lights`, `predict`, `options`, `lanes` and `tiles` are leaves they share.
 mod adaptive;
 mod chi_square;
+pub mod consistency;
 mod departures;
 mod fast;
 mod kernel;
