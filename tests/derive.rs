@@ -190,12 +190,7 @@ fn open_in_three_js(gltf: &Path) -> Option<Value> {
             return None;
         }
     }
-    let chromium = ["chromium", "chromium-browser"].iter().find_map(|name| {
-        let path = std::env::var_os("PATH")?;
-        std::env::split_paths(&path)
-            .map(|d| d.join(name))
-            .find(|p| p.is_file())
-    })?;
+    common::chromium()?;
     let template = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/scripts/open_gltf_three.html"),
     )
@@ -205,26 +200,12 @@ fn open_in_three_js(gltf: &Path) -> Option<Value> {
         .replace("THREE_DIR", &format!("file://{}", three.display()))
         .replace("GLTF_FILE", &gltf.file_name().unwrap().to_string_lossy());
     std::fs::write(&page, html).unwrap();
-    let profile = tempfile::tempdir().unwrap();
-    let out = Command::new(chromium)
-        .args([
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu-sandbox",
-            "--use-angle=swiftshader",
-            "--enable-unsafe-swiftshader",
-            "--no-first-run",
-            // The page imports three.js and loads the glTF from disk.
-            "--allow-file-access-from-files",
-            "--virtual-time-budget=30000",
-        ])
-        .arg(format!("--user-data-dir={}", profile.path().display()))
-        .arg("--dump-dom")
-        .arg(format!("file://{}", page.display()))
-        .output()
-        .unwrap();
+    // The page imports three.js and loads the glTF from disk.
+    let dom = common::headless_dom(
+        &format!("file://{}", page.display()),
+        &["--allow-file-access-from-files"],
+    );
     std::fs::remove_file(&page).unwrap();
-    let dom = String::from_utf8_lossy(&out.stdout);
     let start = dom.find("THREE-BEGIN{").expect("three.js wrote no result") + "THREE-BEGIN".len();
     let end = dom[start..].find("THREE-END").unwrap() + start;
     Some(serde_json::from_str(&dom[start..end].replace("&amp;", "&")).unwrap())

@@ -62,6 +62,8 @@ const SOLVE_CHAIN: &[&str] = &[
     "lanes",
     "lights",
     "predict",
+    // The frames' cross-check before the solve: light geometry and the noise model only.
+    "consistency",
     "measure",
     "chi_square",
     "sheen",

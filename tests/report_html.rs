@@ -12,6 +12,9 @@ use std::process::Command;
 
 use serde_json::Value;
 
+mod common;
+use common::chromium;
+
 fn psscan(args: &[&str]) -> std::process::Output {
     let out = Command::new(env!("CARGO_BIN_EXE_psscan"))
         .args(args)
@@ -23,14 +26,6 @@ fn psscan(args: &[&str]) -> std::process::Output {
         String::from_utf8_lossy(&out.stderr)
     );
     out
-}
-
-fn chromium() -> Option<PathBuf> {
-    let path = std::env::var_os("PATH")?;
-    ["chromium", "chromium-browser", "google-chrome"]
-        .iter()
-        .flat_map(|name| std::env::split_paths(&path).map(move |d| d.join(name)))
-        .find(|p| p.is_file())
 }
 
 fn skip(test: &str) -> bool {
@@ -46,23 +41,7 @@ fn skip(test: &str) -> bool {
 
 /// Opens `page#fragment` headless (WebGL through SwiftShader) and returns the DOM.
 fn dump_dom(page: &Path, fragment: &str) -> String {
-    let profile = tempfile::tempdir().unwrap();
-    let url = format!("file://{}#{fragment}", page.display());
-    let out = Command::new(chromium().unwrap())
-        .args([
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu-sandbox",
-            "--use-angle=swiftshader",
-            "--enable-unsafe-swiftshader",
-            "--no-first-run",
-            "--virtual-time-budget=30000",
-        ])
-        .arg(format!("--user-data-dir={}", profile.path().display()))
-        .args(["--dump-dom", &url])
-        .output()
-        .expect("chromium runs");
-    String::from_utf8_lossy(&out.stdout).into_owned()
+    common::headless_dom(&format!("file://{}#{fragment}", page.display()), &[])
 }
 
 /// The page's self-test results; Chromium's DOM dump can come before the test's image
