@@ -362,6 +362,9 @@
       provenance();
       setupLoupe("albedo");
       setupLoupe("normal");
+      // Derived maps zoom on click; they have no full-resolution loupe source.
+      setupLoupe("height");
+      setupLoupe("roughness");
       setupError = setupRelight();
       setupHemisphere();
       drawRelight();
