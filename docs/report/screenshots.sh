@@ -22,6 +22,10 @@ shoot() { # page.html out.png height
 }
 
 "$PSSCAN" demo --out "$WORK/demo" --width 1024 --height 768 --sheen -q
+# The page with derived height and roughness, as `psscan derive` then `psscan report --derived`
+# give it.
+"$PSSCAN" derive "$WORK/demo/maps" --out "$WORK/demo-derived" --height --roughness vmf --force -q
+"$PSSCAN" report "$WORK/demo/maps" --derived "$WORK/demo-derived" >/dev/null
 shoot "$WORK/demo/maps/report.html" docs/report/demo.png 5200
 
 if [ -d "$DILIGENT" ]; then

@@ -85,12 +85,18 @@ fn height_figure(dir: &Path, report: &Value) -> Result<String> {
     let (lo, hi) = finite_range(&height);
     let r = Reduction::for_size(height.width, height.height);
     let img = scalar_view(&height, r.width, r.height, lo, hi);
+    let flattening = match report["flatten_radius_px"].as_f64() {
+        Some(r) => format!("flattened at a radius of {r:.0} px"),
+        None => "not flattened: folds and tilt dominate the range (derive --flatten keeps only \
+                 the relief)"
+            .to_string(),
+    };
     let caption = scale_caption(
         "img-height",
         lo,
         hi,
         units,
-        "integrated from the normals (offset arbitrary); block means",
+        &format!("integrated from the normals (offset arbitrary), {flattening}; block means"),
     );
     Ok(figure(
         "height",
