@@ -102,15 +102,7 @@ pub struct SimCamera<'a> {
 impl<'a> SimCamera<'a> {
     /// Builds the scene `spec` describes under `rig` (the expensive part, done once).
     pub fn new(rig: &'a Rig, spec: &SynthSpec, source: Box<dyn LitSource>) -> Result<Self> {
-        let scene = Scene::build(
-            rig,
-            spec.textile.clone(),
-            spec.width,
-            spec.height,
-            spec.window(rig),
-            spec.scene.clone(),
-            &Silent,
-        )?;
+        let scene = spec.scene(rig, &Silent)?;
         Ok(SimCamera {
             rig,
             spec: spec.clone(),

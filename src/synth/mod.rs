@@ -85,6 +85,24 @@ impl SynthSpec {
         )
     }
 
+    /// The scene this spec describes under `rig`: the textile sampled at every pixel of its
+    /// window (the expensive part of rendering, done once per set).
+    pub fn scene<'r>(
+        &self,
+        rig: &'r Rig,
+        progress: &dyn crate::progress::Progress,
+    ) -> crate::error::Result<Scene<'r>> {
+        Scene::build(
+            rig,
+            self.textile.clone(),
+            self.width,
+            self.height,
+            self.window(rig),
+            self.scene.clone(),
+            progress,
+        )
+    }
+
     pub fn noise(&self) -> Noise {
         match self.noise_seed {
             Some(seed) => Noise::Seeded(seed),

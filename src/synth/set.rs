@@ -144,15 +144,7 @@ fn render_synthetic_set(
     let mut timings = BTreeMap::new();
     let start = Instant::now();
     let window = spec.window(rig);
-    let scene = Scene::build(
-        rig,
-        spec.textile.clone(),
-        spec.width,
-        spec.height,
-        window,
-        spec.scene.clone(),
-        progress,
-    )?;
+    let scene = spec.scene(rig, progress)?;
     timings.insert("scene".into(), start.elapsed().as_secs_f64());
 
     let (encoding, extension) = match spec.encoding {

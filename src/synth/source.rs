@@ -31,15 +31,7 @@ pub struct SceneSource<'r> {
 impl<'r> SceneSource<'r> {
     /// Builds the scene `spec` describes under `rig` (the frames are rendered when loaded).
     pub fn build(rig: &'r Rig, spec: &SynthSpec, progress: &dyn Progress) -> Result<Self> {
-        let scene = Scene::build(
-            rig,
-            spec.textile.clone(),
-            spec.width,
-            spec.height,
-            spec.window(rig),
-            spec.scene.clone(),
-            progress,
-        )?;
+        let scene = spec.scene(rig, progress)?;
         Ok(SceneSource {
             rig,
             scene,
