@@ -62,17 +62,10 @@ pub fn settle_fire_confirm(
     settle: Duration,
     interrupt: &Interrupt,
 ) -> Result<Shot> {
-    let check_interrupt = || -> Result<()> {
-        if interrupt.is_set() {
-            Err(Error::Interrupted("Ctrl-C".into()))
-        } else {
-            Ok(())
-        }
-    };
     {
         let _lease = keepalive.lease(settle + Duration::from_secs(1));
         if !interrupt.sleep(settle) {
-            check_interrupt()?;
+            interrupt.check()?;
         }
     }
     let shot = {
@@ -81,7 +74,7 @@ pub fn settle_fire_confirm(
     };
     // Ctrl-C during the shot: the keepalive may have switched the LED off mid-exposure, so
     // the shot is not kept.
-    check_interrupt()?;
+    interrupt.check()?;
     let mut l = lights.lock();
     let state = l.state()?;
     confirm(&l.name(), led, &state, "after the shot")?;

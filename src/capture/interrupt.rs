@@ -23,6 +23,15 @@ impl Interrupt {
         self.0.load(Ordering::SeqCst)
     }
 
+    /// `Err(Interrupted)` once the flag is set: the check between a capture's steps.
+    pub fn check(&self) -> crate::error::Result<()> {
+        if self.is_set() {
+            Err(crate::error::Error::Interrupted("Ctrl-C".into()))
+        } else {
+            Ok(())
+        }
+    }
+
     /// Sleeps for `duration` in short steps; returns false as soon as the flag is set.
     /// `Duration::MAX` sleeps until the flag is set.
     pub fn sleep(&self, duration: Duration) -> bool {

@@ -343,14 +343,7 @@ fn shoot(
     options: &CaptureOptions,
     interrupt: &Interrupt,
 ) -> Result<FrameRecord> {
-    let check_interrupt = || -> Result<()> {
-        if interrupt.is_set() {
-            Err(Error::Interrupted("Ctrl-C".into()))
-        } else {
-            Ok(())
-        }
-    };
-    check_interrupt()?;
+    interrupt.check()?;
     let expected = planned.light();
     let state_before = switch_and_confirm(lights, expected)?;
     let scratch = scratch_path(writer.dir(), planned);

@@ -47,9 +47,7 @@ fn lit_shot(
     settle: Duration,
     interrupt: &Interrupt,
 ) -> Result<Shot> {
-    if interrupt.is_set() {
-        return Err(Error::Interrupted("Ctrl-C".into()));
-    }
+    interrupt.check()?;
     let timeout_ms = switch_and_confirm(lights, led)?.timeout_ms;
     let keepalive = Keepalive::start(
         lights.clone(),
