@@ -87,10 +87,10 @@ pub(super) struct SolveFlags {
     /// Do not subtract the set's all-off (dark) frame.
     #[arg(long)]
     pub(super) no_dark: bool,
-    /// Kernel precision. Default (and f64): the exact per-pixel kernel, which also predicts
-    /// each pixel's error. f32 alone: the fast kernel, streaming f32 with tiles of 0.01
-    /// degrees (normals within 0.02 degrees plus single-precision round-off of the exact
-    /// kernel's) for the ls and adaptive estimators; robust and svd keep the exact kernel.
+    /// Kernel precision. Default (and f32 alone): the fast kernel, streaming f32 with tiles of
+    /// 0.01 degrees (normals within 0.02 degrees plus single-precision round-off of the exact
+    /// kernel's; the same pixels escalate to the robust fit) for the ls and adaptive
+    /// estimators; robust and svd keep the exact kernel. f64: the exact per-pixel kernel.
     #[arg(long, value_enum)]
     pub(super) precision: Option<PrecisionArg>,
     /// Share light coefficients across tiles where that moves normals by at most this many
@@ -157,19 +157,23 @@ impl SolveFlags {
             MethodArg::Svd => Method::Svd,
         };
         let precision = match (self.precision, self.tile_tolerance) {
-            (Some(PrecisionArg::F64), _) => Precision::F64,
+            (Some(PrecisionArg::F64), _) | (None, None) => Precision::F64,
             (Some(PrecisionArg::F32), _) | (None, Some(_)) => Precision::F32,
-            (None, None) => Precision::F64,
         };
         // `--precision f32` alone: the fast kernel, streaming f32 with tiles (within
         // solve::default_kernel_tolerance_deg of the exact kernel). The robust estimator and the
         // SVD method have no streaming form, so with them the flag is refused by name. No kernel
-        // asked for: the exact kernel, the one that predicts each pixel's error from the noise.
+        // asked for: the fast kernel where the estimator and method have it (it predicts each
+        // pixel's error and screens the same pixels as the exact kernel), else the exact one.
         let tiles = match (self.precision, self.tile_tolerance) {
             (Some(PrecisionArg::F32), None) => Some(DEFAULT_TILE_TOLERANCE_DEG),
             (_, tiles) => tiles,
         };
         let kernel = KernelChoice::new(self.estimator, method, precision, tiles, false)?;
+        let kernel = match (self.precision, self.tile_tolerance) {
+            (None, None) => kernel.fast_where_possible(),
+            _ => kernel,
+        };
         let options = SolveOptions {
             kernel,
             light_model: match self.light_model {

@@ -13,10 +13,15 @@
 //!   AVX-512 or AVX2 with FMA is chosen at run time, the baseline build stays portable. Rows run in
 //!   parallel (rayon) and each reads each input plane once.
 //!
+//! - Where the solve predicts its error or screens its residual (the adaptive estimator), each
+//!   light is weighed by its noise variance in the same pass ([`NoiseSums`]): the chi-square
+//!   statistic the exact kernel tests and the predicted error come out of sums over the lights,
+//!   so neither needs a second pass.
+//!
 //! Pixels left with fewer than three lights, degenerate or non-finite results, or in a tile
 //! whose corners cannot be solved, are handed to the exact per-pixel kernel, which names the
-//! reason. Fast-path pixels get normal, albedo, residual, condition number and lights used;
-//! their predicted error is left 0 (only the exact kernel computes it).
+//! reason. Fast-path pixels get normal, albedo, residual, condition number, lights used and,
+//! where asked for, the predicted error.
 
 use rayon::prelude::*;
 
@@ -55,6 +60,29 @@ pub struct Context<'a> {
     /// The outputs hold a previous solve's values (`solve_reusing`): fast-path pixels must
     /// also write their predicted error (0) and fit, which fresh zeroed outputs already hold.
     pub reused_outputs: bool,
+    /// Set where the lights are weighed by their noise: the adaptive screen's statistic or
+    /// the predicted error is asked for.
+    weighing: Option<Weighing>,
+}
+
+/// What weighing each light by its noise needs: the noise model (as `NoiseModel`) and what
+/// the weights are for.
+#[derive(Clone, Copy)]
+struct Weighing {
+    photon: f64,
+    floor: f64,
+    channel_scale: [f64; 3],
+    /// See `NoiseModel::shared_cfa_sample`.
+    shared_cfa_sample: Option<[[u8; 2]; 2]>,
+    /// The chi-square test's relative model error, squared.
+    relative_var: f64,
+    /// Compute the chi-square statistic of the least-squares fit (the adaptive screen).
+    statistic: bool,
+    /// Compute the predicted error.
+    predict: bool,
+    /// How far the tiled light directions may lie from the exact ones (radians; 0 for exact
+    /// coefficients): the statistic's slack.
+    tile_rad: f64,
 }
 
 impl<'a> Context<'a> {
@@ -83,7 +111,40 @@ impl<'a> Context<'a> {
             max_condition: options.max_condition,
             normal_only: options.normal_only,
             reused_outputs: false,
+            weighing: Weighing::new(input, options),
         }
+    }
+
+    /// Sets how far tiled light directions may lie from the exact ones (degrees), the slack
+    /// of the adaptive screen's statistic.
+    pub fn set_tile_error(&mut self, degrees: f64) {
+        if let Some(w) = &mut self.weighing {
+            w.tile_rad = degrees.to_radians();
+        }
+    }
+}
+
+impl Weighing {
+    fn new(input: &SolveInput, options: &SolveOptions) -> Option<Self> {
+        let statistic = matches!(
+            options.kernel,
+            super::KernelChoice::Streaming(super::Streaming {
+                estimator: super::StreamingEstimator::Adaptive,
+                ..
+            })
+        );
+        let predict = options.predict_error;
+        let noise = input.noise;
+        (statistic || predict).then_some(Weighing {
+            photon: noise.photon,
+            floor: noise.floor,
+            channel_scale: noise.channel_scale,
+            shared_cfa_sample: noise.shared_cfa_sample,
+            relative_var: options.robust.relative_model_error.powi(2),
+            statistic,
+            predict,
+            tile_rad: 0.0,
+        })
     }
 }
 
@@ -97,6 +158,9 @@ pub struct RowScratch<T> {
     row_slope: Vec<T>,
     exact: Scratch,
     pixel: Vec<f64>,
+    /// Per column of the row, the chi-square statistic of the fast path's fit plus its slack
+    /// (0 where the exact kernel solved the pixel; see [`RowScratch::statistic`]).
+    statistic: Vec<f32>,
 }
 
 impl<T: Real> RowScratch<T> {
@@ -113,7 +177,17 @@ impl<T: Real> RowScratch<T> {
             row_slope: vec![T::zero(); nodes_x * stride],
             exact: Scratch::with_capacity(ctx.illumination.len()),
             pixel: vec![0.0; stride],
+            statistic: vec![0.0; ctx.frames.width],
         }
+    }
+
+    /// Per column of the row last solved, the chi-square statistic `sum_k r_k^2 / s_k^2` of the
+    /// fast least-squares fit plus a bound of how far the fast kernel's rounding and tiled
+    /// light directions may put it below the exact kernel's (so a pixel whose value passes
+    /// the test would pass the exact kernel's); 0 where the exact kernel solved the pixel
+    /// (it tested it itself). Set only for the adaptive estimator.
+    pub fn statistic(&self) -> &[f32] {
+        &self.statistic
     }
 }
 
@@ -223,6 +297,7 @@ fn solve_row<T: Real, const FMA: bool>(
         for x in 0..w {
             exact_pixel(ctx, y, x, row, scratch);
         }
+        scratch.statistic.fill(0.0);
         return;
     }
     if let Coefficients::Tiled(grid) = ctx.coefficients {
@@ -242,6 +317,7 @@ fn solve_row<T: Real, const FMA: bool>(
                 for l in 0..LANES {
                     row.reset(x + l, PixelStatus::OutsideMask);
                 }
+                scratch.statistic[x..x + LANES].fill(0.0);
                 continue;
             }
         }
@@ -259,18 +335,24 @@ fn solve_row<T: Real, const FMA: bool>(
             },
             None => Source::Table(&scratch.coef),
         };
-        let ok = solve_chunk::<T, FMA>(ctx, y * w + x, &source, valid, row, x);
-        // Fast-path pixels have no predicted error: the plane is zero where this kernel
+        let statistic = &mut scratch.statistic[x..x + LANES];
+        let ok = solve_chunk::<T, FMA>(ctx, (x, y), &source, valid, row, statistic);
+        // Without a prediction fast-path pixels have none: the plane is zero where this kernel
         // wrote it first, but the last chunk overlaps pixels the exact kernel may have solved.
+        let predicted = ctx.weighing.is_some_and(|w| w.predict);
         if ctx.reused_outputs || x + LANES != x0 {
-            row.predicted[x..x + LANES].fill(0.0);
+            if !predicted {
+                row.predicted[x..x + LANES].fill(0.0);
+            }
             row.fit[x..x + LANES].fill(PixelFit::LeastSquares);
         }
         for l in 0..LANES {
             if inside[l] && !ok[l] {
                 exact_pixel(ctx, y, x + l, row, scratch);
+                scratch.statistic[x + l] = 0.0;
             } else if !inside[l] {
                 row.reset(x + l, PixelStatus::OutsideMask);
+                scratch.statistic[x + l] = 0.0;
             }
         }
     }
@@ -384,17 +466,19 @@ fn fill_coefficients<T: Real>(
     (valid, None)
 }
 
-/// Solves `LANES` pixels starting at pixel index `i0` (column `x` of `row`); returns which
-/// lanes succeeded. Every lane is written; the caller overwrites the lanes that failed.
+/// Solves `LANES` pixels starting at column `x` of `row` (frame row `y`); returns which lanes
+/// succeeded. Every lane is written (and its `statistic` where the context computes it); the
+/// caller overwrites the lanes that failed.
 #[inline(always)]
 fn solve_chunk<T: Real, const FMA: bool>(
     ctx: &Context,
-    i0: usize,
+    (x, y): (usize, usize),
     coef: &Source<T>,
     valid: [bool; LANES],
     row: &mut RowOut,
-    x: usize,
+    statistic: &mut [f32],
 ) -> [bool; LANES] {
+    let i0 = y * ctx.frames.width + x;
     let wt = [
         T::of(LUMINANCE_WEIGHTS[0]),
         T::of(LUMINANCE_WEIGHTS[1]),
@@ -414,6 +498,7 @@ fn solve_chunk<T: Real, const FMA: bool>(
     let mut b = [[[zero; LANES]; 3]; 3];
     let mut lum_sq = [zero; LANES];
     let mut dropped = [zero; LANES];
+    let mut noise = ctx.weighing.map(|w| NoiseSums::<T>::new(w, (x, y)));
     for (k, frame) in ctx.frames.lights.iter().enumerate() {
         let (r, g, bl) = (
             load::<T>(&frame.rgb.r, i0),
@@ -452,6 +537,17 @@ fn solve_chunk<T: Real, const FMA: bool>(
             );
             lum_sq[l] = madd::<T, FMA>(lum_k[l], lum_k[l], lum_sq[l]);
             one[l] = if keep { zero } else { T::one() };
+        }
+        if let Some(noise) = &mut noise {
+            let light = LightLanes {
+                rgb: [&r, &g, &bl],
+                scale: &s,
+                inv_falloff: &inv_falloff,
+                lum: &lum_k,
+                dropped: &one,
+                direction: [&lx, &ly, &lz],
+            };
+            noise.add::<FMA>(&light);
         }
         for l in 0..LANES {
             dropped[l] += one[l];
@@ -554,11 +650,230 @@ fn solve_chunk<T: Real, const FMA: bool>(
     }
     store(&mut row.residual[x..x + LANES], &residual);
     store(&mut row.condition[x..x + LANES], &condition);
+    if let Some(noise) = &noise {
+        if noise.weighing.statistic {
+            let tested = noise.statistic(&n_lum, &used, &length);
+            store(statistic, &tested);
+        }
+        if noise.weighing.predict {
+            let predicted = noise.predicted_deg(&inv, &n_lum, &length);
+            store(&mut row.predicted[x..x + LANES], &predicted);
+        }
+    }
     for (o, u) in row.lights[x..x + LANES].iter_mut().zip(&used.0) {
         *o = u.to32() as u8;
     }
     row.status[x..x + LANES].fill(PixelStatus::Solved);
     ok
+}
+
+/// One light's values in a chunk, as [`NoiseSums::add`] reads them.
+struct LightLanes<'a, T> {
+    /// The raw channel values.
+    rgb: [&'a [T; LANES]; 3],
+    /// Exposure over the LED's colour scale, per channel.
+    scale: &'a [T; 3],
+    inv_falloff: &'a [T; LANES],
+    /// The light-normalised luminance (0 where the light is dropped).
+    lum: &'a [T; LANES],
+    /// 1 where the light is dropped (dark, saturated, not finite), else 0.
+    dropped: &'a [T; LANES],
+    direction: [&'a [T; LANES]; 3],
+}
+
+/// Sums over a chunk's lights, each weighed by its luminance variance `s_k^2` under the noise
+/// model (`NoiseModel::luminance_variance`, the exact kernel's), from which the chi-square
+/// statistic of the least-squares fit and its predicted error follow without a second pass:
+///
+/// - `sum_k r_k^2 / t_k^2 = Q0 - 2 N . q + N^T P N` with `t_k^2` the test variance (`s_k^2`
+///   plus the model error and storage precision, as `ChiSquare::prepare`), `Q0 = sum w I^2`,
+///   `q = sum w I l`, `P = sum w l l^T`, `w = 1 / t^2`;
+/// - the normal's covariance `A^-1 (sum_k s_k^2 l_k l_k^T) A^-1` (`predict`).
+struct NoiseSums<T> {
+    weighing: Weighing,
+    /// Per lane, which channel holds the pixel's own CFA sample (shared-sample frames).
+    own: Option<[u8; LANES]>,
+    q0: [T; LANES],
+    q: [[T; LANES]; 3],
+    /// `P` and `sum s^2 l l^T`, symmetric (xx, xy, xz, yy, yz, zz).
+    p: [[T; LANES]; 6],
+    cov: [[T; LANES]; 6],
+}
+
+/// The symmetric layout's index of entry `(i, j)`.
+const SYM: [[usize; 3]; 3] = [[0, 1, 2], [1, 3, 4], [2, 4, 5]];
+
+impl<T: Real> NoiseSums<T> {
+    #[inline(always)]
+    fn new(weighing: Weighing, (x, y): (usize, usize)) -> Self {
+        let own = weighing
+            .shared_cfa_sample
+            .map(|pattern| std::array::from_fn(|l| pattern[y % 2][(x + l) % 2]));
+        let zero = [T::zero(); LANES];
+        NoiseSums {
+            weighing,
+            own,
+            q0: zero,
+            q: [zero; 3],
+            p: [zero; 6],
+            cov: [zero; 6],
+        }
+    }
+
+    /// Adds one light.
+    #[inline(always)]
+    fn add<const FMA: bool>(&mut self, light: &LightLanes<T>) {
+        let w = &self.weighing;
+        let (photon, floor) = (T::of(w.photon), T::of(w.floor));
+        // Per channel `(w_c s_c)^2 chi_c`: with the inverse falloff squared, the factor of a
+        // channel's raw variance in the luminance's (independent channels).
+        let k: [T; 3] = std::array::from_fn(|c| {
+            let ws = T::of(LUMINANCE_WEIGHTS[c]) * light.scale[c];
+            ws * ws * T::of(w.channel_scale[c])
+        });
+        // The test variance adds the model error and the f32 storage's rounding of `I`.
+        let relative = T::of(w.relative_var + (f32::EPSILON as f64).powi(2) / 12.0);
+        let tiny = T::of(f32::MIN_POSITIVE as f64);
+        let zero = T::zero();
+        let mut var = [zero; LANES];
+        for l in 0..LANES {
+            let mut sum = zero;
+            for c in 0..3 {
+                let raw = light.rgb[c][l];
+                let raw = if raw > zero { raw } else { zero };
+                sum = madd::<T, FMA>(k[c], madd::<T, FMA>(photon, raw, floor), sum);
+            }
+            let m = light.inv_falloff[l];
+            var[l] = sum * m * m;
+        }
+        if let Some(own) = &self.own {
+            // All three channels carry the own sample `v`: the luminance's relative variance
+            // is `v`'s.
+            for l in 0..LANES {
+                let v = light.rgb[own[l] as usize][l];
+                let lum = light.lum[l];
+                let shared = lum * lum * madd::<T, FMA>(photon, v, floor) / (v * v);
+                var[l] = if v > zero { shared } else { var[l] };
+            }
+        }
+        for l in 0..LANES {
+            let keep = light.dropped[l] == zero;
+            let lum = light.lum[l];
+            let test = madd::<T, FMA>(relative * lum, lum, var[l]) + tiny;
+            let weight = if keep { T::one() / test } else { zero };
+            let s2 = if keep { var[l] } else { zero };
+            let d = [
+                light.direction[0][l],
+                light.direction[1][l],
+                light.direction[2][l],
+            ];
+            let wl = weight * lum;
+            self.q0[l] = madd::<T, FMA>(wl, lum, self.q0[l]);
+            for i in 0..3 {
+                self.q[i][l] = madd::<T, FMA>(wl, d[i], self.q[i][l]);
+                for j in i..3 {
+                    let e = SYM[i][j];
+                    self.p[e][l] = madd::<T, FMA>(weight * d[i], d[j], self.p[e][l]);
+                    self.cov[e][l] = madd::<T, FMA>(s2 * d[i], d[j], self.cov[e][l]);
+                }
+            }
+        }
+    }
+
+    /// The chi-square statistic at the luminance normal `n` (length `length`) of a fit to
+    /// `used` lights, plus a bound of how far below the exact kernel's it may lie: the
+    /// rounding of the expanded sum (a few units of the kernel's precision times `Q0` per
+    /// light) and the tiled directions (each residual `r_k` moved by at most `d = 3 |N|
+    /// tile_rad`, so the statistic by at most `2 d sqrt(X sum w) + d^2 sum w`, with
+    /// `sum w = trace P` for unit directions).
+    #[inline(always)]
+    fn statistic(&self, n: &[V<T>; 3], used: &V<T>, length: &V<T>) -> V<T> {
+        let (q0, q) = (V(self.q0), [V(self.q[0]), V(self.q[1]), V(self.q[2])]);
+        let p = self.p.map(V);
+        let pn = apply(&p, n);
+        let x = q0 - dot(n, &q) * T::of(2.0) + dot(n, &pn);
+        let x = x.max(T::zero());
+        let rounding = (*used * T::of(2.0) + T::of(8.0)) * q0 * T::epsilon();
+        let weight_sum = p[0] + p[3] + p[5];
+        let d = *length * T::of(3.0 * self.weighing.tile_rad);
+        x + rounding + (x * weight_sum).sqrt() * d * T::of(2.0) + d * d * weight_sum
+    }
+
+    /// The predicted error (degrees) of the luminance normal `n` (length `length`) whose
+    /// normal matrix has the inverse `inv`: `predict::expected_angle_error` for the
+    /// covariance `inv (sum s^2 l l^T) inv`, lane by lane.
+    #[inline(always)]
+    fn predicted_deg(&self, inv: &[V<T>; 6], n: &[V<T>; 3], length: &V<T>) -> V<T> {
+        let cov = sandwich(inv, &self.cov.map(V));
+        let inv_length = V::splat(T::one()) / *length;
+        let u = [n[0] * inv_length, n[1] * inv_length, n[2] * inv_length];
+        // The tangent-plane covariance's trace and determinant: `tr C - u^T C u` and
+        // `u^T adj(C) u`, over `|N|^2` and `|N|^4`.
+        let cu = apply(&cov, &u);
+        let [xx, xy, xz, yy, yz, zz] = cov;
+        let adj = [
+            yy * zz - yz * yz,
+            xz * yz - xy * zz,
+            xy * yz - xz * yy,
+            xx * zz - xz * xz,
+            xy * xz - xx * yz,
+            xx * yy - xy * xy,
+        ];
+        let inv_len2 = inv_length * inv_length;
+        let trace = (xx + yy + zz - dot(&u, &cu)) * inv_len2;
+        let det = dot(&u, &apply(&adj, &u)) * inv_len2 * inv_len2;
+        let half = trace * T::of(0.5);
+        let spread = (half * half - det).max(T::zero()).sqrt();
+        let (l1, l2) = (
+            (half + spread).max(T::zero()),
+            (half - spread).max(T::zero()),
+        );
+        let mut out = [T::zero(); LANES];
+        for l in 0..LANES {
+            let (a, b) = (l1.0[l], l2.0[l]);
+            out[l] = if a > T::zero() {
+                let ratio = b / a;
+                let ratio = if ratio < T::one() { ratio } else { T::one() };
+                T::of((2.0 / std::f64::consts::PI).sqrt()) * a.sqrt() * elliptic_e(ratio)
+            } else {
+                T::zero()
+            };
+        }
+        V(out) * T::of(180.0 / std::f64::consts::PI)
+    }
+}
+
+/// `E(1 - ratio)`, the complete elliptic integral of the second kind (as
+/// `predict::elliptic_e`), by seven steps of the arithmetic-geometric mean: enough for
+/// `ratio` down to 1e-12 (quadratic convergence), without a data-dependent loop.
+#[inline(always)]
+fn elliptic_e<T: Real>(ratio: T) -> T {
+    let half = T::of(0.5);
+    let (mut a, mut b) = (T::one(), ratio.sqrt());
+    let mut sum = half * (T::one() - ratio);
+    let mut weight = half;
+    for _ in 0..7 {
+        let c = half * (a - b);
+        (a, b) = (half * (a + b), (a * b).sqrt());
+        weight = weight + weight;
+        sum += weight * c * c;
+    }
+    T::of(std::f64::consts::FRAC_PI_2) / a * (T::one() - sum)
+}
+
+/// `m s m` for symmetric `m` and `s` (layout of `lanes::frob_sq`).
+#[inline(always)]
+fn sandwich<T: Real>(m: &[V<T>; 6], s: &[V<T>; 6]) -> [V<T>; 6] {
+    let at = |i: usize, j: usize| SYM[i][j];
+    // t = m s, then (t m) on and above the diagonal.
+    let t: [[V<T>; 3]; 3] = std::array::from_fn(|i| {
+        std::array::from_fn(|j| {
+            m[at(i, 0)] * s[at(0, j)] + m[at(i, 1)] * s[at(1, j)] + m[at(i, 2)] * s[at(2, j)]
+        })
+    });
+    let e =
+        |i: usize, j: usize| t[i][0] * m[at(0, j)] + t[i][1] * m[at(1, j)] + t[i][2] * m[at(2, j)];
+    [e(0, 0), e(0, 1), e(0, 2), e(1, 1), e(1, 2), e(2, 2)]
 }
 
 /// Solves one pixel with the exact kernel (dropping unusable lights).

@@ -422,10 +422,10 @@ fn solve_streaming(
     };
     let mut ctx = fast::Context::new(input, options, illumination, &coefficients, kernel);
     ctx.reused_outputs = reused;
+    ctx.set_tile_error(tile_error_deg);
     match (streaming.estimator, streaming.precision) {
         (StreamingEstimator::Adaptive, precision) => {
-            let chi = kernel.chi_square();
-            let screen = adaptive::Screen::new(chi, options, input, illumination, tile_error_deg);
+            let screen = adaptive::Screen::new(kernel.chi_square());
             match precision {
                 Precision::F32 => adaptive::solve_streaming(
                     &ctx,

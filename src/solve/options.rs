@@ -161,8 +161,8 @@ pub struct Streaming {
 /// streaming kernel, a tile tolerance outside (0, 1]) cannot be built.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum KernelChoice {
-    /// The exact per-pixel kernel in f64: every estimator and method, and the only kernel
-    /// that predicts each pixel's error.
+    /// The exact per-pixel kernel in f64: every estimator and method (the reference the
+    /// streaming kernel is held to).
     Exact {
         method: Method,
         estimator: Estimator,
@@ -233,7 +233,7 @@ impl KernelChoice {
         }
     }
 
-    /// The default kernel of `psscan solve --precision f32`: the streaming f32 kernel with
+    /// The default kernel of `psscan solve` (and of `--precision f32`): the streaming f32 kernel with
     /// tiled coefficients ([`DEFAULT_TILE_TOLERANCE_DEG`]), whose normals lie within
     /// [`default_kernel_tolerance_deg`] of the exact kernel's, wherever the estimator and
     /// method allow it (the adaptive estimator sends the pixels its screen flags to the exact
@@ -328,7 +328,7 @@ impl SolveOptions {
         }
     }
 
-    /// These options with the default kernel of `psscan solve --precision f32` (see
+    /// These options with the default kernel of `psscan solve` (see
     /// [`KernelChoice::fast_where_possible`]).
     pub fn with_default_kernel(mut self) -> Self {
         self.kernel = self.kernel.fast_where_possible();
