@@ -196,6 +196,12 @@ fn a_generated_diligent_sphere_solves_and_evaluates_within_the_quantisation_boun
     ]);
     let report: Value =
         serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    // A DiLiGenT set's sensor noise is unknown: no predicted error (JSON null, "n/a").
+    assert!(
+        report["predicted_normal_error_deg"]["mean"].is_null(),
+        "{}",
+        report["predicted_normal_error_deg"]
+    );
     let truth = &report["normal_truth"];
     assert_eq!(truth["mask_pixels"], mask_pixels);
     assert_eq!(truth["solved"], mask_pixels);

@@ -290,7 +290,11 @@ fn roi_bin_and_background_limit_the_work() {
             worst = worst.max(psscan::eval::angle_deg(&v(&a, i), &v(&b, j)));
         }
     }
-    assert!(worst < 1e-3, "roi normals moved {worst} deg");
+    // Both are the default kernel, each within its stated tolerance of the exact kernel's
+    // normals (a rectangle gets its own tile grid): at most twice it apart (the scene's light
+    // matrices are conditioned far better than 10).
+    let tolerance = 2.0 * psscan::solve::default_kernel_tolerance_deg(10.0);
+    assert!(worst < tolerance, "roi normals moved {worst} deg");
 
     // 2x2 binning: a quarter of the pixels, each the mean of four samples, so the noise
     // variance is a quarter and the predicted error half of the full-resolution one (same
