@@ -97,27 +97,54 @@ pub fn normal_errors_deg(result: &SolveResult, truth: &[Plane; 3]) -> Vec<Option
         .collect()
 }
 
+/// The angular errors (degrees) of the solved pixels' normals, in pixel order.
+pub fn solved_normal_errors_deg(result: &SolveResult, truth: &[Plane; 3]) -> Vec<f64> {
+    use rayon::prelude::*;
+    (0..result.status.len())
+        .into_par_iter()
+        .filter(|&i| result.status[i] == PixelStatus::Solved)
+        .map(|i| {
+            let t = Vector3::new(
+                truth[0].data[i] as f64,
+                truth[1].data[i] as f64,
+                truth[2].data[i] as f64,
+            );
+            angle_deg(&result.normal_at(i), &t)
+        })
+        .collect()
+}
+
 pub fn compare(result: &SolveResult, normal: &[Plane; 3], albedo: &[Plane; 3]) -> TruthComparison {
-    let mut angles: Vec<f64> = normal_errors_deg(result, normal)
-        .into_iter()
-        .flatten()
+    let mut angles = solved_normal_errors_deg(result, normal);
+    compare_with_errors(result, &mut angles, albedo)
+}
+
+/// [`compare`] from the solved pixels' normal errors already computed
+/// ([`solved_normal_errors_deg`]; reordered here). The albedo errors and both sets of order
+/// statistics are computed in parallel: at 16 MP they are 16 M and 48 M values.
+pub fn compare_with_errors(
+    result: &SolveResult,
+    angles: &mut [f64],
+    albedo: &[Plane; 3],
+) -> TruthComparison {
+    use rayon::prelude::*;
+    let mut albedo_errors: Vec<f64> = (0..result.status.len())
+        .into_par_iter()
+        .filter(|&i| result.status[i] == PixelStatus::Solved)
+        .flat_map_iter(|i| {
+            (0..3).filter_map(move |c| {
+                let truth = albedo[c].data[i] as f64;
+                (truth > 0.0).then(|| (result.albedo[c].data[i] as f64 - truth).abs() / truth)
+            })
+        })
         .collect();
-    let mut albedo_errors = Vec::with_capacity(angles.len() * 3);
-    for i in 0..result.status.len() {
-        if result.status[i] != PixelStatus::Solved {
-            continue;
-        }
-        for c in 0..3 {
-            let truth = albedo[c].data[i] as f64;
-            if truth > 0.0 {
-                albedo_errors.push((result.albedo[c].data[i] as f64 - truth).abs() / truth);
-            }
-        }
-    }
+    let pixels = angles.len();
+    let (normal_error_deg, albedo_rel_error) =
+        rayon::join(|| Stats::of(angles), || Stats::of(&mut albedo_errors));
     TruthComparison {
-        pixels: angles.len(),
-        normal_error_deg: Stats::of(&mut angles),
-        albedo_rel_error: Stats::of(&mut albedo_errors),
+        pixels,
+        normal_error_deg,
+        albedo_rel_error,
     }
 }
 

@@ -189,7 +189,11 @@ fn run(
         // The page embeds the report as written above; its own build time is added to the
         // report afterwards (a page cannot hold the time it took to build itself).
         clock.time(REPORT_PAGE_STAGE, || {
-            maps::html::write_report_page(stage.path())
+            maps::html::write_report_page_from(
+                stage.path(),
+                &solved.result,
+                solved.maps.display_matrix.as_ref(),
+            )
         })?;
         report.set_stages(&clock);
         report.write(&report_path)?;
@@ -337,13 +341,12 @@ fn compare(
     match truth {
         Truth::Surface { normal, albedo } => {
             let (normal, albedo) = region_truth((normal, albedo), &job.region)?;
-            let errors: Vec<f64> = eval::normal_errors_deg(result, &normal)
-                .into_iter()
-                .flatten()
-                .collect();
+            let mut errors = eval::solved_normal_errors_deg(result, &normal);
+            let histogram = Histogram::of_errors(&errors);
+            let comparison = eval::compare_with_errors(result, &mut errors, &albedo);
             Ok(TruthFigures {
-                comparison: TruthComparisonKind::Surface(eval::compare(result, &normal, &albedo)),
-                histogram: Histogram::of_errors(&errors),
+                comparison: TruthComparisonKind::Surface(comparison),
+                histogram,
             })
         }
         Truth::Normals(normal) => {

@@ -22,7 +22,18 @@ fn loupe_views(maps: &FullMaps, budget: usize) -> Loupe {
             .filter_map(|(name, img)| img.map(|i| (name, i)))
             .collect();
         let mut base64_bytes = 0;
-        for quality in LOUPE_QUALITIES {
+        for (k, quality) in LOUPE_QUALITIES.into_iter().enumerate() {
+            // A full encode at 16 MP takes most of a second: a quality whose sample says it
+            // will not fit is skipped (the last one is always tried).
+            let last = k + 1 == LOUPE_QUALITIES.len();
+            if !last && step < 16 {
+                if let Some(predicted) = predicted_bytes(&sources, quality) {
+                    if predicted as f64 > budget as f64 * PREDICTION_MARGIN {
+                        base64_bytes = predicted;
+                        continue;
+                    }
+                }
+            }
             let views: Vec<(String, Vec<u8>)> = sources
                 .par_iter()
                 .map(|(name, img)| {
@@ -45,6 +56,48 @@ fn loupe_views(maps: &FullMaps, budget: usize) -> Loupe {
         let ratio = (base64_bytes as f64 / budget.max(1) as f64).sqrt();
         step = (step as f64 * ratio).ceil().max(step as f64 + 1.0) as usize;
     }
+}
+
+/// A quality is skipped only when its predicted size is over the budget by more than this
+/// factor (the prediction from a sample of rows is a few percent off either way).
+const PREDICTION_MARGIN: f64 = 1.05;
+
+/// Rows per band of the size sample: a whole number of JPEG blocks (16 for 4:2:0).
+const SAMPLE_BAND_ROWS: u32 = 16;
+
+/// One band in this many goes into the size sample.
+const SAMPLE_EVERY: u32 = 8;
+
+/// The base64 bytes `sources` would take at `quality`, predicted from a JPEG of every
+/// [`SAMPLE_EVERY`]-th band of rows scaled by the rows it stands for; `None` for images too
+/// small to sample (encoding them whole is cheap).
+fn predicted_bytes(sources: &[(&str, RgbImage)], quality: u8) -> Option<usize> {
+    let total: f64 = sources
+        .par_iter()
+        .map(|(name, img)| {
+            let (w, h) = img.dimensions();
+            let bands = h / SAMPLE_BAND_ROWS;
+            if bands < 4 * SAMPLE_EVERY {
+                return None;
+            }
+            let sampled: Vec<u32> = (0..bands).step_by(SAMPLE_EVERY as usize).collect();
+            let rows = sampled.len() as u32 * SAMPLE_BAND_ROWS;
+            let mut sample = RgbImage::new(w, rows);
+            for (j, &band) in sampled.iter().enumerate() {
+                for r in 0..SAMPLE_BAND_ROWS {
+                    let (from, to) = (band * SAMPLE_BAND_ROWS + r, j as u32 * SAMPLE_BAND_ROWS + r);
+                    let row = (from * w * 3) as usize..((from + 1) * w * 3) as usize;
+                    let at = (to * w * 3) as usize;
+                    sample.as_mut()[at..at + w as usize * 3].copy_from_slice(&img.as_raw()[row]);
+                }
+            }
+            let bytes = images::jpeg_bytes(&sample, quality, chroma(name)).len();
+            Some(bytes as f64 * h as f64 / rows as f64 * 4.0 / 3.0)
+        })
+        .collect::<Option<Vec<f64>>>()?
+        .iter()
+        .sum();
+    Some(total as usize)
 }
 
 /// Chroma sampling of a loupe view: the albedo's colour varies more slowly than its
@@ -82,4 +135,50 @@ pub(super) fn loupe_parts(maps: &FullMaps, budget: usize) -> (usize, u8, String)
         })
         .collect();
     (loupe.step, loupe.quality, tags)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A weave-like test image: threads in two directions, colour steps between them, and
+    /// pixel noise (what makes a JPEG large), over `h` rows.
+    fn weave(w: u32, h: u32) -> RgbImage {
+        let mut state = 12345u32;
+        RgbImage::from_fn(w, h, |x, y| {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            let noise = (state >> 27) as f32;
+            let warp = ((x as f32 * 0.9).sin() * 0.5 + 0.5) * 120.0;
+            let weft = ((y as f32 * 0.7).cos() * 0.5 + 0.5) * 90.0;
+            let over = (x / 6 + y / 6) % 2 == 0;
+            let base = if over { warp } else { weft };
+            image::Rgb([
+                (base + noise * 2.0) as u8,
+                (base * 0.7 + 40.0 + noise) as u8,
+                (base * 0.4 + 90.0 + noise * 1.5) as u8,
+            ])
+        })
+    }
+
+    #[test]
+    fn the_sampled_size_predicts_the_whole_jpeg() {
+        let sources = vec![("albedo", weave(900, 1100)), ("normal", weave(900, 1100))];
+        for quality in LOUPE_QUALITIES {
+            let predicted = predicted_bytes(&sources, quality).expect("large enough to sample");
+            let actual: usize = sources
+                .iter()
+                .map(|(name, img)| images::jpeg_bytes(img, quality, chroma(name)).len() * 4 / 3)
+                .sum();
+            let off = predicted as f64 / actual as f64 - 1.0;
+            // The sample is an eighth of the rows of an image of uniform texture: its bytes
+            // per row are the whole's up to headers and tables (a few hundred bytes) and the
+            // texture's row-to-row variation, well under the margin a skip needs.
+            assert!(
+                off.abs() < PREDICTION_MARGIN - 1.0,
+                "q{quality}: predicted {predicted}, actual {actual}"
+            );
+        }
+        // Too few rows to sample: encoded whole.
+        assert!(predicted_bytes(&[("albedo", weave(64, 64))], 88).is_none());
+    }
 }

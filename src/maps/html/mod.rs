@@ -25,6 +25,7 @@ use crate::error::{Error, Result};
 use crate::fsutil::write_atomic;
 use crate::maps::encode::NormalConvention;
 use crate::maps::REPORT_FILE;
+use crate::solve::SolveResult;
 use images::{FullMaps, Reduction};
 use loupe::loupe_parts;
 use relight::{RelightParams, RelightTextures};
@@ -121,7 +122,22 @@ pub fn write_report_page(dir: &Path) -> Result<PageSummary> {
 /// [`write_report_page`], showing the height and roughness of the derive in `derived`
 /// (default: the solve folder's own `derived/`, when it holds one).
 pub fn write_report_page_with(dir: &Path, derived: Option<&Path>) -> Result<PageSummary> {
-    let (html, mut summary) = build_page_with(dir, derived);
+    write_page(dir, build_page_with(dir, derived))
+}
+
+/// [`write_report_page`] for a solve whose maps are still in memory (`psscan solve`): the
+/// page is built from them ([`FullMaps::from_result`]) instead of from the files just
+/// written, the rest (report.json, frame previews, a derive) from the folder.
+pub fn write_report_page_from(
+    dir: &Path,
+    result: &SolveResult,
+    display_matrix: Option<&[[f64; 3]; 3]>,
+) -> Result<PageSummary> {
+    let maps = FullMaps::from_result(result, display_matrix);
+    write_page(dir, build_page_from(dir, None, Some(maps)))
+}
+
+fn write_page(dir: &Path, (html, mut summary): (String, PageSummary)) -> Result<PageSummary> {
     summary.path = dir.join(PAGE_FILE);
     summary.bytes = html.len();
     write_atomic(&summary.path, html.as_bytes())?;
@@ -412,8 +428,9 @@ fn build_parts(
     dir: &Path,
     report: std::result::Result<&Value, &str>,
     derived: Option<&Path>,
+    maps: Option<FullMaps>,
 ) -> (Parts, PageSummary) {
-    let maps = FullMaps::read(dir, normal_convention(report.ok()));
+    let maps = maps.unwrap_or_else(|| FullMaps::read(dir, normal_convention(report.ok())));
     let r = Reduction::for_size(maps.width, maps.height);
     let derived = derived::locate(dir, derived);
     // The display-size parts are independent of each other: built side by side.
@@ -493,8 +510,17 @@ pub fn build_page(dir: &Path) -> (String, PageSummary) {
 
 /// [`build_page`] showing the derive in `derived` (default: the solve's own `derived/`).
 pub fn build_page_with(dir: &Path, derived: Option<&Path>) -> (String, PageSummary) {
+    build_page_from(dir, derived, None)
+}
+
+/// [`build_page_with`] from `maps` where given, else from the maps in `dir`.
+fn build_page_from(
+    dir: &Path,
+    derived: Option<&Path>,
+    maps: Option<FullMaps>,
+) -> (String, PageSummary) {
     let report = read_report(dir);
-    let (parts, summary) = build_parts(dir, report.as_ref().map_err(String::as_str), derived);
+    let (parts, summary) = build_parts(dir, report.as_ref().map_err(String::as_str), derived, maps);
     // The page is built in the solve's staging folder, whose name is temporary: name it after
     // the set it solved.
     let set_name = report

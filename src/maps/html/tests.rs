@@ -17,3 +17,64 @@ fn a_damaged_report_and_missing_maps_are_named_on_the_page() {
     assert!(html.contains("albedo.png") && html.contains("missing"));
     assert!(html.contains("confidence.exr is missing"));
 }
+
+/// The page `psscan solve` builds from the maps in memory sees what a rebuild from the files
+/// sees (`psscan report`): the same planes up to the PNGs' 16-bit rounding.
+#[test]
+fn maps_from_memory_equal_the_maps_read_back_from_the_files() {
+    use crate::bench::{bench_noise, render_scene, SceneKind};
+    use crate::maps::{write_maps, MapOptions};
+    use crate::solve::{solve, Estimator, LightSource, SolveInput, SolveOptions};
+    let rig = crate::rig::Rig::default_rig();
+    let (_, frames) =
+        render_scene(&rig, SceneKind::Shadows, 0.02, &crate::progress::Silent).unwrap();
+    let input = SolveInput {
+        frames: &frames,
+        lights: LightSource::Rig(&rig),
+        noise: bench_noise(&rig),
+        exposure: 1.0,
+        mask: None,
+    };
+    let result = solve(
+        &input,
+        &SolveOptions::exact(Estimator::Adaptive),
+        &crate::progress::Silent,
+    )
+    .unwrap();
+    // A camera-to-display matrix that mixes channels and sends some values out of [0, 1].
+    let matrix = [[1.6, -0.4, -0.2], [-0.2, 1.5, -0.3], [0.0, -0.5, 1.5]];
+    let options = MapOptions {
+        display_matrix: Some(matrix),
+        report_html: false,
+        ..MapOptions::default()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    write_maps(&result, dir.path(), &options).unwrap();
+    let read = FullMaps::read(dir.path(), NormalConvention::OpenGl);
+    let memory = FullMaps::from_result(&result, Some(&matrix));
+    assert!(read.missing.is_empty(), "{:?}", read.missing);
+    assert_eq!((memory.width, memory.height), (read.width, read.height));
+    let max_diff = |a: &[crate::plane::Plane], b: &[crate::plane::Plane]| {
+        a.iter()
+            .zip(b)
+            .flat_map(|(p, q)| p.data.iter().zip(&q.data).map(|(x, y)| (x - y).abs()))
+            .fold(0f32, f32::max)
+    };
+    // Normals: half a 16-bit step of [-1, 1]. Albedo: half a 16-bit step of sRGB, which in
+    // linear terms is largest at 1 (slope of the sRGB curve's inverse there: about 2.4).
+    let normal = max_diff(
+        memory.normal.as_ref().unwrap(),
+        read.normal.as_ref().unwrap(),
+    );
+    assert!(normal <= 1.0 / 65535.0 + 1e-6, "normal {normal}");
+    let albedo = max_diff(
+        memory.albedo.as_ref().unwrap(),
+        read.albedo.as_ref().unwrap(),
+    );
+    assert!(albedo <= 2.5 * 0.5 / 65535.0 + 1e-6, "albedo {albedo}");
+    let confidence = max_diff(
+        memory.confidence.as_ref().unwrap(),
+        read.confidence.as_ref().unwrap(),
+    );
+    assert_eq!(confidence, 0.0);
+}
