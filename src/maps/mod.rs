@@ -133,19 +133,34 @@ pub fn write_maps_timed(
     if options.exr {
         files.extend([MapFile::NormalExr, MapFile::AlbedoExr]);
     }
-    let written = files
-        .par_iter()
-        .map(|&file| {
-            let path = dir.join(file.name());
-            let bytes = busy.time(&format!("encode {}", file.name()), || {
-                encode_map(result, file, &path, options)
-            })?;
-            busy.time(&format!("write {}", file.name()), || {
-                crate::fsutil::write_atomic(&path, &bytes)
-            })?;
-            Ok((file, path))
-        })
-        .collect::<Result<Vec<(MapFile, PathBuf)>>>()?;
+    // Each encoded file is written (and flushed to disk) on a thread of its own: a rayon
+    // worker waiting for the disk would leave a core idle while other maps still encode.
+    let written = std::thread::scope(|scope| {
+        let writers = files
+            .par_iter()
+            .map(|&file| {
+                let path = dir.join(file.name());
+                let bytes = busy.time(&format!("encode {}", file.name()), || {
+                    encode_map(result, file, &path, options)
+                })?;
+                let writer = scope.spawn(move || {
+                    busy.time(&format!("write {}", file.name()), || {
+                        crate::fsutil::write_atomic(&path, &bytes)
+                    })?;
+                    Ok((file, path))
+                });
+                Ok(writer)
+            })
+            .collect::<Vec<Result<_>>>();
+        // Every writer is joined, also when another map's encode failed; the first failure
+        // (of an encode or a write) is returned.
+        writers
+            .into_iter()
+            .map(|w| w.and_then(|w| w.join().expect("a map writer panicked")))
+            .collect::<Vec<_>>()
+            .into_iter()
+            .collect::<Result<Vec<(MapFile, PathBuf)>>>()
+    })?;
     let find = |f: MapFile| {
         written
             .iter()
