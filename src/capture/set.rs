@@ -422,7 +422,11 @@ impl CaptureSet {
                 .map(|(e, d)| (e.file.clone(), d))
                 .collect();
             let dark_frame = dark.map(|_| &decoded[0]);
-            check_plausible(&lights, dark_frame).map_err(|m| Error::capture_set(&self.dir, m))?;
+            clock
+                .time("plausibility check", || {
+                    check_plausible(&lights, dark_frame)
+                })
+                .map_err(|m| Error::capture_set(&self.dir, m))?;
         }
         let mut decoded = decoded.into_iter();
         let dark_frame = dark.and_then(|_| decoded.next());
