@@ -108,17 +108,22 @@ pub fn normal_errors_deg(result: &SolveResult, truth: &[Plane; 3]) -> Vec<Option
     use rayon::prelude::*;
     (0..result.status.len())
         .into_par_iter()
-        .map(|i| {
-            (result.status[i] == PixelStatus::Solved).then(|| {
-                let t = Vector3::new(
-                    truth[0].data[i] as f64,
-                    truth[1].data[i] as f64,
-                    truth[2].data[i] as f64,
-                );
-                angle_deg(&result.normal_at(i), &t)
-            })
-        })
+        .map(|i| (result.status[i] == PixelStatus::Solved).then(|| error_at(result, truth, i)))
         .collect()
+}
+
+/// The angle (degrees) between pixel `i`'s solved normal and `truth`'s.
+fn error_at(result: &SolveResult, truth: &[Plane; 3], i: usize) -> f64 {
+    angle_deg(&result.normal_at(i), &truth_at(truth, i))
+}
+
+/// Pixel `i` of a truth normal map.
+fn truth_at(truth: &[Plane; 3], i: usize) -> Vector3<f64> {
+    Vector3::new(
+        truth[0].data[i] as f64,
+        truth[1].data[i] as f64,
+        truth[2].data[i] as f64,
+    )
 }
 
 /// The angular errors (degrees) of the solved pixels' normals, in pixel order.
@@ -127,14 +132,7 @@ pub fn solved_normal_errors_deg(result: &SolveResult, truth: &[Plane; 3]) -> Vec
     (0..result.status.len())
         .into_par_iter()
         .filter(|&i| result.status[i] == PixelStatus::Solved)
-        .map(|i| {
-            let t = Vector3::new(
-                truth[0].data[i] as f64,
-                truth[1].data[i] as f64,
-                truth[2].data[i] as f64,
-            );
-            angle_deg(&result.normal_at(i), &t)
-        })
+        .map(|i| error_at(result, truth, i))
         .collect()
 }
 
@@ -199,11 +197,7 @@ pub fn compare_normals_over_mask(
     let mut all = Vec::new();
     let mut solved = Vec::new();
     for i in 0..result.status.len() {
-        let t = Vector3::new(
-            truth[0].data[i] as f64,
-            truth[1].data[i] as f64,
-            truth[2].data[i] as f64,
-        );
+        let t = truth_at(truth, i);
         if !mask.data[i] || t.norm().is_nan() || t.norm() <= 0.0 {
             continue;
         }

@@ -27,8 +27,8 @@ use rayon::prelude::*;
 
 use super::kernel::{Kernel, RowOut, Scratch};
 use super::lanes::{
-    apply, dot, frob_sq, load, madd, mix, prefetch, store, subtract_if, vectors, Real, LANES,
-    PREFETCH_AHEAD, V,
+    adjugate, apply, dot, frob_sq, load, madd, mix, prefetch, sandwich, store, subtract_if,
+    vectors, vectors6, Real, LANES, PREFETCH_AHEAD, SYM, V,
 };
 use super::lights::Illumination;
 use super::options::SolveOptions;
@@ -578,18 +578,10 @@ fn solve_chunk<T: Real, const FMA: bool>(
         }
     }
     let used = V::splat(T::of(k_count as f64)) - V(dropped);
-    let a = [V(a[0]), V(a[1]), V(a[2]), V(a[3]), V(a[4]), V(a[5])];
-    let [xx, xy, xz, yy, yz, zz] = a;
-    // Adjugate of the symmetric normal matrix; its inverse is adjugate / determinant.
-    let adj = [
-        yy * zz - yz * yz,
-        xz * yz - xy * zz,
-        xy * yz - xz * yy,
-        xx * zz - xz * xz,
-        xy * xz - xx * yz,
-        xx * yy - xy * xy,
-    ];
-    let det = xx * adj[0] + xy * adj[1] + xz * adj[2];
+    let a = vectors6(&a);
+    // The normal matrix's inverse is its adjugate over its determinant.
+    let adj = adjugate(&a);
+    let det = a[0] * adj[0] + a[1] * adj[1] + a[2] * adj[2];
     let inv_det = V::splat(T::one()) / det;
     let inv = [
         adj[0] * inv_det,
@@ -700,15 +692,16 @@ struct NoiseSums<T> {
     cov: [[T; LANES]; 6],
 }
 
-/// The symmetric layout's index of entry `(i, j)`.
-const SYM: [[usize; 3]; 3] = [[0, 1, 2], [1, 3, 4], [2, 4, 5]];
-
 impl<T: Real> NoiseSums<T> {
     #[inline(always)]
     fn new(weighing: Weighing, (x, y): (usize, usize)) -> Self {
-        let own = weighing
-            .shared_cfa_sample
-            .map(|pattern| std::array::from_fn(|l| pattern[y % 2][(x + l) % 2]));
+        let own = weighing.shared_cfa_sample.map(|pattern| {
+            let mut own = [0u8; LANES];
+            for (l, o) in own.iter_mut().enumerate() {
+                *o = pattern[y % 2][(x + l) % 2];
+            }
+            own
+        });
         let zero = [T::zero(); LANES];
         NoiseSums {
             weighing,
@@ -727,10 +720,11 @@ impl<T: Real> NoiseSums<T> {
         let (photon, floor) = (T::of(w.photon), T::of(w.floor));
         // Per channel `(w_c s_c)^2 chi_c`: with the inverse falloff squared, the factor of a
         // channel's raw variance in the luminance's (independent channels).
-        let k: [T; 3] = std::array::from_fn(|c| {
+        let mut k = [T::zero(); 3];
+        for (c, k) in k.iter_mut().enumerate() {
             let ws = T::of(LUMINANCE_WEIGHTS[c]) * light.scale[c];
-            ws * ws * T::of(w.channel_scale[c])
-        });
+            *k = ws * ws * T::of(w.channel_scale[c]);
+        }
         // The test variance adds the model error and the f32 storage's rounding of `I`.
         let relative = T::of(w.relative_var + (f32::EPSILON as f64).powi(2) / 12.0);
         let tiny = T::of(f32::MIN_POSITIVE as f64);
@@ -789,7 +783,7 @@ impl<T: Real> NoiseSums<T> {
     #[inline(always)]
     fn statistic(&self, n: &[V<T>; 3], used: &V<T>, length: &V<T>) -> V<T> {
         let (q0, q) = (V(self.q0), [V(self.q[0]), V(self.q[1]), V(self.q[2])]);
-        let p = self.p.map(V);
+        let p = vectors6(&self.p);
         let pn = apply(&p, n);
         let x = q0 - dot(n, &q) * T::of(2.0) + dot(n, &pn);
         let x = x.max(T::zero());
@@ -804,24 +798,15 @@ impl<T: Real> NoiseSums<T> {
     /// covariance `inv (sum s^2 l l^T) inv`, lane by lane.
     #[inline(always)]
     fn predicted_deg(&self, inv: &[V<T>; 6], n: &[V<T>; 3], length: &V<T>) -> V<T> {
-        let cov = sandwich(inv, &self.cov.map(V));
+        let cov = sandwich(inv, &vectors6(&self.cov));
         let inv_length = V::splat(T::one()) / *length;
         let u = [n[0] * inv_length, n[1] * inv_length, n[2] * inv_length];
         // The tangent-plane covariance's trace and determinant: `tr C - u^T C u` and
         // `u^T adj(C) u`, over `|N|^2` and `|N|^4`.
         let cu = apply(&cov, &u);
-        let [xx, xy, xz, yy, yz, zz] = cov;
-        let adj = [
-            yy * zz - yz * yz,
-            xz * yz - xy * zz,
-            xy * yz - xz * yy,
-            xx * zz - xz * xz,
-            xy * xz - xx * yz,
-            xx * yy - xy * xy,
-        ];
         let inv_len2 = inv_length * inv_length;
-        let trace = (xx + yy + zz - dot(&u, &cu)) * inv_len2;
-        let det = dot(&u, &apply(&adj, &u)) * inv_len2 * inv_len2;
+        let trace = (cov[0] + cov[3] + cov[5] - dot(&u, &cu)) * inv_len2;
+        let det = dot(&u, &apply(&adjugate(&cov), &u)) * inv_len2 * inv_len2;
         let half = trace * T::of(0.5);
         let spread = (half * half - det).max(T::zero()).sqrt();
         let (l1, l2) = (
@@ -859,21 +844,6 @@ fn elliptic_e<T: Real>(ratio: T) -> T {
         sum += weight * c * c;
     }
     T::of(std::f64::consts::FRAC_PI_2) / a * (T::one() - sum)
-}
-
-/// `m s m` for symmetric `m` and `s` (layout of `lanes::frob_sq`).
-#[inline(always)]
-fn sandwich<T: Real>(m: &[V<T>; 6], s: &[V<T>; 6]) -> [V<T>; 6] {
-    let at = |i: usize, j: usize| SYM[i][j];
-    // t = m s, then (t m) on and above the diagonal.
-    let t: [[V<T>; 3]; 3] = std::array::from_fn(|i| {
-        std::array::from_fn(|j| {
-            m[at(i, 0)] * s[at(0, j)] + m[at(i, 1)] * s[at(1, j)] + m[at(i, 2)] * s[at(2, j)]
-        })
-    });
-    let e =
-        |i: usize, j: usize| t[i][0] * m[at(0, j)] + t[i][1] * m[at(1, j)] + t[i][2] * m[at(2, j)];
-    [e(0, 0), e(0, 1), e(0, 2), e(1, 1), e(1, 2), e(2, 2)]
 }
 
 /// Solves one pixel with the exact kernel (dropping unusable lights).

@@ -185,6 +185,52 @@ pub fn frob_sq<T: Real>(m: &[V<T>; 6]) -> V<T> {
     m[0] * m[0] + m[3] * m[3] + m[5] * m[5] + (m[1] * m[1] + m[2] * m[2] + m[4] * m[4]) * T::of(2.0)
 }
 
+/// The index in the symmetric layout of [`frob_sq`] of entry `(i, j)`.
+pub const SYM: [[usize; 3]; 3] = [[0, 1, 2], [1, 3, 4], [2, 4, 5]];
+
+/// The six vectors of a symmetric matrix held as lane arrays (layout of [`frob_sq`]).
+#[inline(always)]
+pub fn vectors6<T: Real>(m: &[[T; LANES]; 6]) -> [V<T>; 6] {
+    [V(m[0]), V(m[1]), V(m[2]), V(m[3]), V(m[4]), V(m[5])]
+}
+
+/// The adjugate of the symmetric matrix `m` (layout of [`frob_sq`]), symmetric too: the
+/// inverse times the determinant.
+#[inline(always)]
+pub fn adjugate<T: Real>(m: &[V<T>; 6]) -> [V<T>; 6] {
+    let [xx, xy, xz, yy, yz, zz] = *m;
+    [
+        yy * zz - yz * yz,
+        xz * yz - xy * zz,
+        xy * yz - xz * yy,
+        xx * zz - xz * xz,
+        xy * xz - xx * yz,
+        xx * yy - xy * xy,
+    ]
+}
+
+/// `m s m` for the symmetric matrices `m` and `s` (layout of [`frob_sq`]).
+#[inline(always)]
+pub fn sandwich<T: Real>(m: &[V<T>; 6], s: &[V<T>; 6]) -> [V<T>; 6] {
+    // t = m s, then t m on and above the diagonal (loops with constant bounds unroll).
+    let mut t = [[V::splat(T::zero()); 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            t[i][j] = m[SYM[i][0]] * s[SYM[0][j]]
+                + m[SYM[i][1]] * s[SYM[1][j]]
+                + m[SYM[i][2]] * s[SYM[2][j]];
+        }
+    }
+    let mut out = [V::splat(T::zero()); 6];
+    for i in 0..3 {
+        for j in i..3 {
+            out[SYM[i][j]] =
+                t[i][0] * m[SYM[0][j]] + t[i][1] * m[SYM[1][j]] + t[i][2] * m[SYM[2][j]];
+        }
+    }
+    out
+}
+
 /// The symmetric matrix `m` (layout of [`frob_sq`]) times `v`.
 #[inline(always)]
 pub fn apply<T: Real>(m: &[V<T>; 6], v: &[V<T>; 3]) -> [V<T>; 3] {
