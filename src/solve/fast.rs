@@ -58,22 +58,18 @@ pub struct Context<'a> {
     max_condition: f64,
     normal_only: bool,
     /// The outputs hold a previous solve's values (`solve_reusing`): fast-path pixels must
-    /// also write their predicted error (0) and fit, which fresh zeroed outputs already hold.
+    /// also write their fit, and their predicted error (0 where it is not computed), which
+    /// fresh zeroed outputs already hold.
     pub reused_outputs: bool,
     /// Set where the lights are weighed by their noise: the adaptive screen's statistic or
     /// the predicted error is asked for.
     weighing: Option<Weighing>,
 }
 
-/// What weighing each light by its noise needs: the noise model (as `NoiseModel`) and what
-/// the weights are for.
+/// What weighing each light by its noise needs: the noise model and what the weights are for.
 #[derive(Clone, Copy)]
 struct Weighing {
-    photon: f64,
-    floor: f64,
-    channel_scale: [f64; 3],
-    /// See `NoiseModel::shared_cfa_sample`.
-    shared_cfa_sample: Option<[[u8; 2]; 2]>,
+    noise: super::NoiseModel,
     /// The chi-square test's relative model error, squared.
     relative_var: f64,
     /// Compute the chi-square statistic of the least-squares fit (the adaptive screen).
@@ -126,20 +122,10 @@ impl<'a> Context<'a> {
 
 impl Weighing {
     fn new(input: &SolveInput, options: &SolveOptions) -> Option<Self> {
-        let statistic = matches!(
-            options.kernel,
-            super::KernelChoice::Streaming(super::Streaming {
-                estimator: super::StreamingEstimator::Adaptive,
-                ..
-            })
-        );
+        let statistic = options.streaming() && options.estimator() == super::Estimator::Adaptive;
         let predict = options.predict_error;
-        let noise = input.noise;
         (statistic || predict).then_some(Weighing {
-            photon: noise.photon,
-            floor: noise.floor,
-            channel_scale: noise.channel_scale,
-            shared_cfa_sample: noise.shared_cfa_sample,
+            noise: input.noise,
             relative_var: options.robust.relative_model_error.powi(2),
             statistic,
             predict,
@@ -695,7 +681,7 @@ struct NoiseSums<T> {
 impl<T: Real> NoiseSums<T> {
     #[inline(always)]
     fn new(weighing: Weighing, (x, y): (usize, usize)) -> Self {
-        let own = weighing.shared_cfa_sample.map(|pattern| {
+        let own = weighing.noise.shared_cfa_sample.map(|pattern| {
             let mut own = [0u8; LANES];
             for (l, o) in own.iter_mut().enumerate() {
                 *o = pattern[y % 2][(x + l) % 2];
@@ -717,13 +703,13 @@ impl<T: Real> NoiseSums<T> {
     #[inline(always)]
     fn add<const FMA: bool>(&mut self, light: &LightLanes<T>) {
         let w = &self.weighing;
-        let (photon, floor) = (T::of(w.photon), T::of(w.floor));
+        let (photon, floor) = (T::of(w.noise.photon), T::of(w.noise.floor));
         // Per channel `(w_c s_c)^2 chi_c`: with the inverse falloff squared, the factor of a
         // channel's raw variance in the luminance's (independent channels).
         let mut k = [T::zero(); 3];
         for (c, k) in k.iter_mut().enumerate() {
             let ws = T::of(LUMINANCE_WEIGHTS[c]) * light.scale[c];
-            *k = ws * ws * T::of(w.channel_scale[c]);
+            *k = ws * ws * T::of(w.noise.channel_scale[c]);
         }
         // The test variance adds the model error and the f32 storage's rounding of `I`.
         let relative = T::of(w.relative_var + (f32::EPSILON as f64).powi(2) / 12.0);
@@ -750,25 +736,47 @@ impl<T: Real> NoiseSums<T> {
                 var[l] = if v > zero { shared } else { var[l] };
             }
         }
-        for l in 0..LANES {
-            let keep = light.dropped[l] == zero;
-            let lum = light.lum[l];
-            let test = madd::<T, FMA>(relative * lum, lum, var[l]) + tiny;
-            let weight = if keep { T::one() / test } else { zero };
-            let s2 = if keep { var[l] } else { zero };
-            let d = [
-                light.direction[0][l],
-                light.direction[1][l],
-                light.direction[2][l],
-            ];
-            let wl = weight * lum;
-            self.q0[l] = madd::<T, FMA>(wl, lum, self.q0[l]);
-            for i in 0..3 {
-                self.q[i][l] = madd::<T, FMA>(wl, d[i], self.q[i][l]);
-                for j in i..3 {
-                    let e = SYM[i][j];
-                    self.p[e][l] = madd::<T, FMA>(weight * d[i], d[j], self.p[e][l]);
-                    self.cov[e][l] = madd::<T, FMA>(s2 * d[i], d[j], self.cov[e][l]);
+        // Only the sums asked for: a least-squares solve has no statistic to test, and the
+        // adaptive screen without a prediction needs no covariance.
+        if w.statistic {
+            for l in 0..LANES {
+                let keep = light.dropped[l] == zero;
+                let lum = light.lum[l];
+                let test = madd::<T, FMA>(relative * lum, lum, var[l]) + tiny;
+                let weight = if keep { T::one() / test } else { zero };
+                let d = [
+                    light.direction[0][l],
+                    light.direction[1][l],
+                    light.direction[2][l],
+                ];
+                let wl = weight * lum;
+                self.q0[l] = madd::<T, FMA>(wl, lum, self.q0[l]);
+                for i in 0..3 {
+                    self.q[i][l] = madd::<T, FMA>(wl, d[i], self.q[i][l]);
+                    for j in i..3 {
+                        let e = SYM[i][j];
+                        self.p[e][l] = madd::<T, FMA>(weight * d[i], d[j], self.p[e][l]);
+                    }
+                }
+            }
+        }
+        if w.predict {
+            for l in 0..LANES {
+                let s2 = if light.dropped[l] == zero {
+                    var[l]
+                } else {
+                    zero
+                };
+                let d = [
+                    light.direction[0][l],
+                    light.direction[1][l],
+                    light.direction[2][l],
+                ];
+                for i in 0..3 {
+                    for j in i..3 {
+                        let e = SYM[i][j];
+                        self.cov[e][l] = madd::<T, FMA>(s2 * d[i], d[j], self.cov[e][l]);
+                    }
                 }
             }
         }
