@@ -102,7 +102,7 @@ pub fn albedo_rgb16(result: &SolveResult, camera_to_srgb: Option<&[[f64; 3]; 3]>
 }
 
 /// The three planes through a 3x3 colour matrix (rows: output channels).
-fn to_display(rgb: &[Plane; 3], m: &[[f64; 3]; 3]) -> [Plane; 3] {
+pub fn to_display(rgb: &[Plane; 3], m: &[[f64; 3]; 3]) -> [Plane; 3] {
     let mut out = [rgb[0].clone(), rgb[1].clone(), rgb[2].clone()];
     let [r, g, b] = &mut out;
     r.data

@@ -152,13 +152,11 @@ pub fn write_maps_timed(
                 Ok(writer)
             })
             .collect::<Vec<Result<_>>>();
-        // Every writer is joined, also when another map's encode failed; the first failure
-        // (of an encode or a write) is returned.
+        // The first failure (of an encode or a write) is returned; the scope joins every
+        // writer before it ends, so none outlives this function.
         writers
             .into_iter()
             .map(|w| w.and_then(|w| w.join().expect("a map writer panicked")))
-            .collect::<Vec<_>>()
-            .into_iter()
             .collect::<Result<Vec<(MapFile, PathBuf)>>>()
     })?;
     let find = |f: MapFile| {

@@ -180,32 +180,24 @@ impl FullMaps {
     /// and without reading and decoding half a gigabyte of files at 16 MP.
     pub fn from_result(result: &SolveResult, display_matrix: Option<&[[f64; 3]; 3]>) -> FullMaps {
         let (w, h) = (result.width, result.height);
-        let mut albedo = [0, 1, 2].map(|_| Plane::new(w, h, 0.0));
-        let [ar, ag, ab] = &mut albedo;
-        let rows = ar
-            .data
-            .par_chunks_mut(w)
-            .zip(ag.data.par_chunks_mut(w))
-            .zip(ab.data.par_chunks_mut(w));
-        rows.enumerate().for_each(|(y, ((r, g), b))| {
-            let mut out = [r, g, b];
-            for x in 0..w {
-                let i = y * w + x;
-                let solved = result.status[i] == PixelStatus::Solved;
-                let camera = [0, 1, 2].map(|c| result.albedo[c].data[i] as f64);
-                for (c, row) in out.iter_mut().enumerate() {
-                    let v = match display_matrix {
-                        Some(m) => m[c][0] * camera[0] + m[c][1] * camera[1] + m[c][2] * camera[2],
-                        None => camera[c],
-                    };
-                    row[x] = if solved {
-                        v.clamp(0.0, 1.0) as f32
+        // As `albedo.png` holds it: display primaries, clamped, black where unsolved.
+        let mut albedo = match display_matrix {
+            Some(m) => crate::maps::encode::to_display(&result.albedo, m),
+            None => result.albedo.clone(),
+        };
+        for plane in &mut albedo {
+            plane
+                .data
+                .par_iter_mut()
+                .zip(result.status.par_iter())
+                .for_each(|(v, s)| {
+                    *v = if *s == PixelStatus::Solved {
+                        v.clamp(0.0, 1.0)
                     } else {
                         0.0
-                    };
-                }
-            }
-        });
+                    }
+                });
+        }
         let to_plane = |values: Vec<f32>| Plane::from_vec(w, h, values).expect("sized");
         let ((status, fit), normal) = rayon::join(
             || {
