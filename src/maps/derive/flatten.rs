@@ -28,7 +28,11 @@ pub fn kept_fraction(radius_px: f64, f: f64) -> f64 {
 }
 
 /// Flattens the unit normal map `normal` (world frame) in place with cut-off `radius_px`.
-pub fn flatten(normal: &mut [Plane; 3], radius_px: f64) {
+/// Only the `solved` pixels (one flag per pixel) take part: the low-pass is a normalised
+/// convolution over them (`blur(slope * solved) / blur(solved)`), so the flat normals an
+/// unsolved background holds do not pull an object's tilt toward zero near its edge, and
+/// unsolved pixels keep the normal they hold.
+pub fn flatten(normal: &mut [Plane; 3], solved: &[bool], radius_px: f64) {
     let (w, h) = (normal[0].width, normal[0].height);
     let sigma = sigma_for_radius(radius_px);
     let [nx, ny, nz] = normal;
@@ -46,13 +50,35 @@ pub fn flatten(normal: &mut [Plane; 3], radius_px: f64) {
         }
     };
     let (mut p, mut q) = rayon::join(|| slope(nx, nz), || slope(ny, nz));
-    rayon::join(|| high_pass(&mut p, sigma), || high_pass(&mut q, sigma));
+    let weight = (!solved.iter().all(|&s| s)).then(|| {
+        let mask = Plane {
+            width: w,
+            height: h,
+            data: solved.iter().map(|&s| s as u8 as f32).collect(),
+        };
+        for slope in [&mut p, &mut q] {
+            slope
+                .data
+                .par_iter_mut()
+                .zip(&mask.data)
+                .for_each(|(v, m)| *v *= m);
+        }
+        gaussian_blur(&mask, sigma)
+    });
+    rayon::join(
+        || high_pass(&mut p, sigma, weight.as_ref()),
+        || high_pass(&mut q, sigma, weight.as_ref()),
+    );
     nx.data
         .par_iter_mut()
         .zip(ny.data.par_iter_mut())
         .zip(nz.data.par_iter_mut())
         .zip(p.data.par_iter().zip(&q.data))
-        .for_each(|(((x, y), z), (&p, &q))| {
+        .zip(solved)
+        .for_each(|((((x, y), z), (&p, &q)), &solved)| {
+            if !solved {
+                return;
+            }
             let inv = 1.0 / (p * p + q * q + 1.0).sqrt();
             *x = -p * inv;
             *y = -q * inv;
@@ -60,14 +86,28 @@ pub fn flatten(normal: &mut [Plane; 3], radius_px: f64) {
         });
 }
 
-/// `plane -= gaussian(plane, sigma)`.
-fn high_pass(plane: &mut Plane, sigma: f64) {
+/// `plane -= gaussian(plane, sigma)`, or with `weight` (the blurred mask, the plane zero
+/// outside the mask) `plane -= gaussian(plane, sigma) / weight`: the low-pass of the masked
+/// pixels alone. A pixel whose weight is nearly 0 (no solved pixel within reach) keeps its
+/// value; outside the mask it is not used.
+fn high_pass(plane: &mut Plane, sigma: f64, weight: Option<&Plane>) {
     let low = gaussian_blur(plane, sigma);
-    plane
-        .data
-        .par_iter_mut()
-        .zip(&low.data)
-        .for_each(|(v, l)| *v -= l);
+    match weight {
+        None => plane
+            .data
+            .par_iter_mut()
+            .zip(&low.data)
+            .for_each(|(v, l)| *v -= l),
+        Some(weight) => plane
+            .data
+            .par_iter_mut()
+            .zip(low.data.par_iter().zip(&weight.data))
+            .for_each(|(v, (l, m))| {
+                if *m > 1e-6 {
+                    *v -= l / m;
+                }
+            }),
+    }
 }
 
 /// Three passes of a box of odd width `2r+1` in x and in y, with mirrored borders; the width
@@ -187,7 +227,7 @@ mod tests {
             normal_from_slopes(p + tp, q + tq)
         });
         let before = mean_angle(&tilted, &truth);
-        flatten(&mut tilted, radius);
+        flatten(&mut tilted, &vec![true; w * h], radius);
         let after = mean_angle(&tilted, &truth);
         assert!(before > 4.0, "the injected tilt is visible: {before} deg");
         assert!(
@@ -212,6 +252,52 @@ mod tests {
             (0.95..=1.05).contains(&kept),
             "energy above cut-off kept: {kept}"
         );
+    }
+
+    #[test]
+    fn a_masked_object_is_flattened_from_its_own_pixels_only() {
+        // The tilted detail on a disc (an object on a background); outside it the unsolved
+        // pixels hold the flat normal a solve writes there.
+        let (w, h, radius) = (384, 320, 32.0);
+        let inside = |x: f64, y: f64| (x - 192.0).powi(2) + (y - 160.0).powi(2) < 140.0f64.powi(2);
+        let solved: Vec<bool> = (0..w * h)
+            .map(|i| inside((i % w) as f64, (i / w) as f64))
+            .collect();
+        let tilt = (8.0f64.to_radians().tan(), 5.0f64.to_radians().tan());
+        let field = |x: f64, y: f64, tilted: bool| {
+            if !inside(x, y) {
+                return [0.0, 0.0, 1.0];
+            }
+            let (p, q) = detail_slopes(x, y);
+            let (tp, tq) = if tilted { tilt } else { (0.0, 0.0) };
+            normal_from_slopes(p + tp, q + tq)
+        };
+        let truth = planes(w, h, |x, y| field(x, y, false));
+        let error_inside = |n: &[Plane; 3]| -> f64 {
+            let picked: Vec<usize> = (0..w * h).filter(|&i| solved[i]).collect();
+            let v = |p: &[Plane; 3], i: usize| [0, 1, 2].map(|c| p[c].data[i] as f64);
+            picked
+                .iter()
+                .map(|&i| angle_deg(v(n, i), v(&truth, i)))
+                .sum::<f64>()
+                / picked.len() as f64
+        };
+        let mut masked = planes(w, h, |x, y| field(x, y, true));
+        let mut unmasked = masked.clone();
+        let before = error_inside(&masked);
+        flatten(&mut masked, &solved, radius);
+        flatten(&mut unmasked, &vec![true; w * h], radius);
+        let (after, blind) = (error_inside(&masked), error_inside(&unmasked));
+        eprintln!(
+            "masked flatten: {before:.3} deg -> {after:.4} deg; ignoring the mask {blind:.3} deg"
+        );
+        assert!(after < 0.2, "tilt left inside the mask: {after} deg");
+        // The background, taken as data, pulls the tilt toward zero near the edge.
+        assert!(blind > 3.0 * after, "{blind} vs {after}");
+        // Unsolved pixels keep their normal.
+        assert!((0..w * h)
+            .filter(|&i| !solved[i])
+            .all(|i| masked[2].data[i] == 1.0));
     }
 
     fn mean_angle(a: &[Plane; 3], b: &[Plane; 3]) -> f64 {

@@ -12,6 +12,7 @@ pub mod gltf;
 pub mod height;
 pub mod mips;
 pub mod outputs;
+pub mod poisson;
 pub mod source;
 pub mod tiling;
 
@@ -216,6 +217,10 @@ pub struct HeightReport {
     pub units: String,
     pub min: f64,
     pub max: f64,
+    /// How the masked least-squares refinement ended, where some pixels were not solved
+    /// (their height is 0); absent when the whole map was integrated in the Fourier domain.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub masked: Option<poisson::MaskedSolve>,
 }
 
 /// Runs the requested steps on `source` and writes the results into `out` (staged: a folder
@@ -267,7 +272,7 @@ pub fn derive(
         let px = radius.to_px(maps.pixel_mm, "the flattening radius")?;
         report.flatten_radius_px = Some(px);
         step("flatten", &mut || {
-            flatten::flatten(&mut maps.normal, px);
+            flatten::flatten(&mut maps.normal, &maps.solved, px);
             Ok(())
         })?;
     }
@@ -285,8 +290,15 @@ pub fn derive(
             } else {
                 height::Boundary::Mirrored
             };
-            let z = height::integrate(&maps.normal, maps.pixel_mm.unwrap_or(1.0), boundary);
-            report.height_map = Some(outputs::write_height(dir, &z, maps.pixel_mm.is_some())?);
+            let (z, masked) = height::integrate_over(
+                &maps.normal,
+                &maps.solved,
+                maps.pixel_mm.unwrap_or(1.0),
+                boundary,
+            );
+            let mut written = outputs::write_height(dir, &z, maps.pixel_mm.is_some())?;
+            written.masked = masked;
+            report.height_map = Some(written);
             height_plane = Some(z);
             Ok(())
         })?;

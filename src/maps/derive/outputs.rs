@@ -38,6 +38,7 @@ pub fn write_height(dir: &Path, z: &Plane, in_mm: bool) -> Result<HeightReport> 
         units: if in_mm { "mm" } else { "px" }.into(),
         min: lo as f64,
         max: hi as f64,
+        masked: None,
     })
 }
 
