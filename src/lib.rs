@@ -16,8 +16,11 @@
 
 #[warn(missing_docs)]
 pub mod alloc;
+#[warn(missing_docs)]
 pub mod bench;
+#[warn(missing_docs)]
 pub mod calibration;
+#[warn(missing_docs)]
 pub mod capture;
 #[warn(missing_docs)]
 pub mod error;
@@ -34,12 +37,16 @@ pub mod plane;
 #[warn(missing_docs)]
 pub mod progress;
 pub mod raw;
+#[warn(missing_docs)]
 pub mod region;
 #[warn(missing_docs)]
 pub mod rig;
+#[warn(missing_docs)]
 pub mod sets;
+#[warn(missing_docs)]
 pub mod sim;
 pub mod solve;
+#[warn(missing_docs)]
 pub mod synth;
 #[warn(missing_docs)]
 pub mod timing;

@@ -68,7 +68,10 @@ pub struct BenchOptions {
 /// A solver configuration under test.
 #[derive(Clone, Debug)]
 pub struct Variant {
+    /// The variant's name in the rows and tables; the speed targets find theirs by it
+    /// ([`FAST_LS`]).
     pub name: String,
+    /// The solve options that make the variant.
     pub options: SolveOptions,
     /// Also run above [`LARGE_MP`] (the slow per-pixel variants are reported at 1 MP only).
     pub large: bool,
@@ -222,21 +225,32 @@ pub const EXACT_LS: &str = "ls f64 per-pixel (exact kernel)";
 /// One timed solve.
 #[derive(Clone, Debug, Serialize)]
 pub struct Row {
+    /// The scene's name ([`SceneKind::name`]).
     pub scene: String,
+    /// The scene's actual size in megapixels (width x height / 10^6).
     pub megapixels: f64,
+    /// Scene width in pixels.
     pub width: usize,
+    /// Scene height in pixels.
     pub height: usize,
+    /// The solver variant's, the floor's or the NumPy peer's name.
     pub variant: String,
+    /// Median wall-clock time of the timed runs, seconds.
     pub seconds: f64,
+    /// Timed runs the median was taken over.
     pub runs: usize,
     /// Time over the memory-read floor of the same scene.
     pub over_floor: f64,
+    /// Mean angle between the solved and the true normals over the pixels solved (degrees).
     pub mean_error_deg: f64,
+    /// 95th percentile of the same angles (degrees).
     pub p95_error_deg: f64,
     /// Largest and mean angle between this variant's normals and the exact least-squares
     /// kernel's, over pixels both solved (`None` for peers and the floor).
     pub max_dev_from_exact_deg: Option<f64>,
+    /// Mean angle to the exact kernel's normals (see `max_dev_from_exact_deg`).
     pub mean_dev_from_exact_deg: Option<f64>,
+    /// Pixels solved, as a fraction of all.
     pub solved_fraction: f64,
     /// Pixels the robust fit ran on, as a fraction of all (0 for least squares, the floor and
     /// the peers).
@@ -246,26 +260,39 @@ pub struct Row {
 /// Peak memory of one solve.
 #[derive(Clone, Debug, Serialize)]
 pub struct Memory {
+    /// The variant measured (always [`FAST_LS`]).
     pub variant: String,
+    /// The scene's name (the Lambertian one).
     pub scene: String,
+    /// The size asked for, megapixels.
     pub megapixels: f64,
+    /// Bytes of the decoded input frames the solve reads.
     pub input_bytes: usize,
     /// Heap bytes live at the solve's peak that belong to it: its input plus everything it
     /// allocated (outputs, temporaries); other live data of the benchmark is not counted.
     pub peak_bytes: usize,
+    /// `peak_bytes` over `input_bytes`.
     pub ratio: f64,
 }
 
 /// Everything one benchmark run measured.
 #[derive(Clone, Debug, Serialize)]
 pub struct BenchResult {
+    /// Rayon worker threads the solves ran on.
     pub threads: usize,
+    /// The CPU's model name from `/proc/cpuinfo` ("unknown" where there is none).
     pub cpu: String,
+    /// Every timed solve, scene by scene: the memory-read floor first, then the variants, then the
+    /// NumPy peer's rows.
     pub rows: Vec<Row>,
+    /// Peak memory of the fast solve at each size (empty in a build without the `count-alloc`
+    /// feature, which installs the counting allocator).
     pub memory: Vec<Memory>,
+    /// The NumPy version the peer ran with; `None`: the peer was not run or was skipped.
     pub numpy: Option<String>,
     /// Estimated interpolation error of the tile grid at each size, and the tile size chosen.
     pub tiles: Vec<(f64, usize, f64)>,
+    /// Wall-clock time of the whole run, seconds.
     pub seconds: f64,
 }
 

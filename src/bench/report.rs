@@ -14,16 +14,26 @@ use crate::error::{Error, Result};
 /// into a previous solve's outputs, as a batch of same-size captures can.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct Targets {
+    /// The Lambertian scene's size, megapixels.
     pub megapixels: f64,
+    /// Median time of [`FAST_LS`], the solve as `psscan` runs it, seconds.
     pub fast_s: f64,
+    /// Median time of reading every input byte once (the memory-read floor), seconds.
     pub floor_s: f64,
+    /// `fast_s` over `floor_s`: what the speed target is judged on.
     pub over_floor: f64,
+    /// Median time of [`FAST_LS_REUSED`], seconds; `None` when that variant was not run.
     pub reused_s: Option<f64>,
+    /// `reused_s` over `floor_s`; `None` when the variant was not run.
     pub reused_over_floor: Option<f64>,
+    /// The NumPy peer's time (its `numpy pinv, 4 solves (distant)` row), seconds; `None` when
+    /// the peer was not run.
     pub numpy_s: Option<f64>,
+    /// `numpy_s` over `fast_s`: how many times faster psscan's fast solve is than NumPy.
     pub numpy_over_fast: Option<f64>,
     /// `None` with `--speed-only`.
     pub exact_s: Option<f64>,
+    /// `exact_s` over `fast_s`; `None` with `--speed-only`.
     pub exact_over_fast: Option<f64>,
 }
 
@@ -69,6 +79,7 @@ pub fn targets(result: &BenchResult) -> Vec<Targets> {
 /// Issue 6's done-when figures for the estimators at one size, from the rows of one run.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct EstimatorFigures {
+    /// The size the figures are for, megapixels.
     pub megapixels: f64,
     /// Lambertian scene: the adaptive estimator on the streaming kernel over the streaming
     /// least squares it starts from (both f32, tiled).
@@ -78,7 +89,10 @@ pub struct EstimatorFigures {
     /// Mean angular errors: least squares on the Lambertian scene, least squares and the
     /// adaptive estimator with the sheen fit on the shadows + sheen scene.
     pub lambertian_ls_error_deg: Option<f64>,
+    /// Mean angular error of least squares on the shadows + sheen scene (degrees).
     pub shadows_sheen_ls_error_deg: Option<f64>,
+    /// Mean angular error of the adaptive estimator with the sheen fit on the shadows + sheen scene
+    /// (degrees).
     pub shadows_sheen_adaptive_error_deg: Option<f64>,
     /// `1 - adaptive / ls` on the shadows + sheen scene (at least 0.5 to pass).
     pub error_reduction: Option<f64>,

@@ -16,13 +16,18 @@ use crate::synth::{expose, Noise, Scene, SceneOptions, Sheen, Textile};
 #[derive(Clone, Copy, Debug, Serialize, PartialEq, Eq)]
 #[serde(rename_all = "kebab-case")]
 pub enum SceneKind {
+    /// Lambertian shading only: the reflectance every variant's model assumes.
     Lambertian,
+    /// Cast shadows from the weave's height field, with 15 % of the direct light filling them.
     Shadows,
+    /// Lambertian shading plus the cloth sheen lobe.
     Sheen,
+    /// Cast shadows and sheen together: the hardest scene.
     ShadowsSheen,
 }
 
 impl SceneKind {
+    /// Every scene, in the order the benchmark runs them.
     pub const ALL: [SceneKind; 4] = [
         SceneKind::Lambertian,
         SceneKind::Shadows,
@@ -30,6 +35,8 @@ impl SceneKind {
         SceneKind::ShadowsSheen,
     ];
 
+    /// The scene's name in the benchmark's rows and tables (`lambertian`, `shadows`, `sheen`,
+    /// `shadows+sheen`).
     pub fn name(self) -> &'static str {
         match self {
             SceneKind::Lambertian => "lambertian",

@@ -30,9 +30,13 @@ use crate::plane::Plane;
 use crate::rig::Rig;
 use crate::solve::GainGrid;
 
+/// The file holding the steps' numbers ([`Calibration`] as TOML), inside the bundle folder.
 pub const NUMBERS_FILE: &str = "calibration.toml";
+/// The calibrated rig's file inside the bundle folder: what captures and solves load.
 pub const RIG_FILE: &str = "rig.toml";
+/// The bundle's index ([`BundleIndex`]): its id and every other file's SHA-256. Written last.
 pub const INDEX_FILE: &str = "bundle.toml";
+/// The per-LED gain grids' file; present only in bundles with a white-sheet step.
 pub const GAINS_FILE: &str = "light_gains.toml";
 
 use crate::rig::CalibrationRef;
@@ -47,16 +51,23 @@ struct GainsFile {
 /// Every step's result; a step not run (yet) is absent.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct Calibration {
+    /// The camera step's intrinsics; `None`: the camera step was not run.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub camera: Option<CameraCalibration>,
+    /// The camera's pose over the table (table step); `None`: not run.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub table: Option<TablePose>,
+    /// Per light, white balance and linearity from the gray chart; `None`: not run.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub gray_chart: Option<ChartReport>,
+    /// The white sheet's diffuse reflectance the sheet step assumed; `None`: no white sheet step.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sheet_reflectance: Option<f64>,
+    /// The LED positions and powers fitted to the white sheet; `None`: no white sheet step.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub lights: Option<LightFit>,
+    /// The wizard's final check, the white sheet re-solved with the calibration; `None`: not run
+    /// (the calibrate subcommands do not run it).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub flatness: Option<Flatness>,
 }
@@ -68,6 +79,8 @@ pub struct BundleIndex {
     pub id: String,
     /// sha256 over the sorted `file = sha256` lines of `files`.
     pub sha256: String,
+    /// Each file of the bundle except `bundle.toml`, by relative path with '/' separators, to the
+    /// lower-case hex SHA-256 of its bytes.
     pub files: BTreeMap<String, String>,
 }
 
@@ -106,6 +119,7 @@ pub fn write(
 
 /// What goes into a bundle.
 pub struct Parts<'a> {
+    /// The steps' numbers, written as `calibration.toml`.
     pub calibration: &'a Calibration,
     /// The calibrated rig.
     pub rig: &'a Rig,
@@ -177,9 +191,14 @@ fn digest(sums: &BTreeMap<String, String>) -> String {
 
 /// A bundle read back, every file checked against its checksum.
 pub struct Bundle {
+    /// The bundle's folder, as given to [`read`].
     pub dir: PathBuf,
+    /// The bundle's id and checksums, as `bundle.toml` holds them (verified against the files).
     pub index: BundleIndex,
+    /// The steps' numbers from `calibration.toml`; a rejected LED fit in them is refused on
+    /// reading.
     pub calibration: Calibration,
+    /// The calibrated rig from the bundle's `rig.toml`.
     pub rig: Rig,
     /// Per light, the intensity correction (bundles with a white-sheet step).
     pub gains: Option<Vec<GainGrid>>,

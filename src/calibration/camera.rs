@@ -26,17 +26,25 @@ pub const MIN_VIEWS: usize = 4;
 /// measured on.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Intrinsics {
+    /// Width of the images measured on, pixels.
     pub width: usize,
+    /// Height of the images measured on, pixels.
     pub height: usize,
+    /// Focal length along columns, pixels.
     pub fx: f64,
+    /// Focal length along rows, pixels.
     pub fy: f64,
+    /// Principal point's column, pixels.
     pub cx: f64,
+    /// Principal point's row, pixels.
     pub cy: f64,
     /// k1 k2 p1 p2 k3.
     pub distortion: [f64; 5],
 }
 
 impl Intrinsics {
+    /// The 3x3 camera matrix `K` in OpenCV's layout, rows outermost: `[[fx, 0, cx], [0, fy, cy],
+    /// [0, 0, 1]]`.
     pub fn camera_matrix(&self) -> [[f64; 3]; 3] {
         [
             [self.fx, 0.0, self.cx],
@@ -65,11 +73,15 @@ impl Intrinsics {
 /// One photograph's fate in the calibration.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ViewReport {
+    /// The photograph's file name.
     pub name: String,
+    /// Whether the final calibration used this view (`false`: no board found, or rejected as an
+    /// outlier).
     pub used: bool,
     /// RMS reprojection error of this view in the last calibration that included it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub rms_px: Option<f64>,
+    /// Why the view was left out; `None` for a used view.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub rejected_because: Option<String>,
 }
@@ -77,24 +89,36 @@ pub struct ViewReport {
 /// The camera step's result.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct CameraCalibration {
+    /// The chessboard photographed.
     pub board: Board,
+    /// The calibrated intrinsics, in the pixels of the photographs.
     pub intrinsics: Intrinsics,
+    /// The 3x3 camera matrix as OpenCV returned it, rows outermost (the same numbers as
+    /// `intrinsics`).
     pub camera_matrix: [[f64; 3]; 3],
     /// k1 k2 p1 p2 k3.
     pub distortion: [f64; 5],
     /// OpenCV's standard deviations of fx, fy, cx, cy, k1, k2, p1, p2, k3.
     pub std_dev: [f64; 9],
+    /// RMS reprojection error over every corner of the used views (pixels).
     pub rms_reprojection_px: f64,
+    /// Whether fx was held equal to fy.
     pub fix_aspect_ratio: bool,
+    /// Views the final calibration used.
     pub views_used: usize,
+    /// Views left out: no board found, or rejected as outliers.
     pub views_rejected: usize,
+    /// Every photograph's fate, in the order given.
     pub views: Vec<ViewReport>,
 }
 
 /// A photograph with the corners found in it (`None`: no board).
 #[derive(Clone, Debug)]
 pub struct DetectedView {
+    /// The photograph's file name.
     pub name: String,
+    /// The board's inner corners in image pixels, row by row from the corner nearest the image's
+    /// top left.
     pub corners: Option<Vec<[f64; 2]>>,
 }
 

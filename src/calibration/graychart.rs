@@ -18,18 +18,26 @@ use crate::rig::{ChartDescription, ChartRect};
 /// samples, and whether any sample clipped.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize)]
 pub struct PatchReading {
+    /// Mean linear value of the patch's R, G and B samples (1.0 = the white level); after
+    /// [`calibrate`] with a [`Shading`], divided by the light's modelled shading at the patch.
     pub rgb: [f64; 3],
+    /// Whether any of the patch's samples reached the white level.
     pub clipped: bool,
 }
 
 /// Linearity of one light's readings.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Linearity {
+    /// Slope of the least-squares line of green reading against nominal reflectance (reading per
+    /// unit reflectance).
     pub slope: f64,
+    /// The line's value at zero reflectance: the reading a black patch would give (ideally 0).
     pub offset: f64,
+    /// Coefficient of determination of the line over the unclipped patches (1: exactly linear).
     pub r_squared: f64,
     /// Index of the patch furthest from the fit, and its relative deviation.
     pub worst_patch: usize,
+    /// Signed relative deviation of the worst patch from the line: (reading - line) / line.
     pub worst_deviation: f64,
     /// Patches left out because a sample clipped at the white level.
     pub clipped_patches: Vec<usize>,
@@ -42,12 +50,17 @@ pub struct LightChart {
     pub white_balance: [f64; 3],
     /// Linearity of the green channel against nominal reflectance.
     pub linearity: Linearity,
+    /// Every patch's reading, in the chart's order (row by row from the top left).
     pub patches: Vec<PatchReading>,
 }
 
+/// The gray chart step's result (`graychart.toml`, and the `gray_chart` of a bundle): per light,
+/// white balance and linearity.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ChartReport {
+    /// The chart's name, from its description.
     pub chart: String,
+    /// Per light, in LED order, its white balance, linearity and patch readings.
     pub lights: Vec<LightChart>,
 }
 
@@ -167,7 +180,10 @@ pub fn analyse(chart: &ChartDescription, patches: Vec<PatchReading>) -> Result<L
 /// light's shading there (inverse square, beam, incidence: across a 12 cm chart an LED at 30
 /// degrees elevation varies by tens of percent, which would read as non-linearity).
 pub struct Shading<'a> {
+    /// The rig whose LEDs shade the chart (positions, beams, the camera that maps pixels to the
+    /// table).
     pub rig: &'a Rig,
+    /// Where the mosaics' pixels lie on the rig's sensor.
     pub window: SensorWindow,
 }
 

@@ -34,6 +34,7 @@ const RESIDUAL_SIGMAS: f64 = 5.0;
 /// One iteration of the joint fit.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Iteration {
+    /// Which iteration this was, counting from 1.
     pub iteration: usize,
     /// Largest position change of any LED in this iteration (mm).
     pub max_step_mm: f64,
@@ -46,20 +47,30 @@ pub struct Iteration {
 /// One LED's result.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct FittedLed {
+    /// Where the fit started: the hand-measured position from rig.toml, world metres.
     pub start_m: [f64; 3],
+    /// Where the fit put the LED, world metres.
     pub position_m: [f64; 3],
     /// Distance between the hand measurement and the fit (mm).
     pub moved_mm: f64,
     /// Linear signal of a white surface at 1 m on the axis, per channel (what the solve
     /// divides by).
     pub rgb_power: [f64; 3],
+    /// RMS over this LED's usable sheet blocks of the measured over the modelled luminance, minus
+    /// 1.
     pub rms_relative_residual: f64,
 }
 
+/// The white-sheet LED fit (the `lights` of `whitesheet.toml` and of a bundle): each LED's fitted
+/// position and power, the history of the iterations, and whether the fit may be used.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct LightFit {
+    /// Per LED, in the rig's order, its fitted position and power.
     pub leds: Vec<FittedLed>,
+    /// Each iteration's changes and residual, in order; its length is the number of iterations run.
     pub iterations: Vec<Iteration>,
+    /// Whether every LED's position step fell below [`CONVERGED_STEP_M`] before the iteration
+    /// limit.
     pub converged: bool,
     /// Why the fit cannot be used (empty: accepted). A fit that did not converge, moved an LED
     /// further from its hand measurement than the rig's tolerance allows, or leaves a residual

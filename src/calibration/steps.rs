@@ -43,8 +43,11 @@ pub fn load_toml<T: serde::de::DeserializeOwned>(path: &Path, what: &str) -> Res
 /// on the table: the pixel-to-world error of this photograph, in millimetres.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct PixelToWorldCheck {
+    /// Board corners detected and checked.
     pub corners: usize,
+    /// Mean distance between where the pose maps a corner on the table and where it is (mm).
     pub mean_mm: f64,
+    /// Largest such distance (mm); infinite when a corner's camera ray misses the table plane.
     pub max_mm: f64,
     /// Extent of the corner grid on the table (the area the check covers), mm.
     pub area_mm: [f64; 2],
@@ -53,9 +56,13 @@ pub struct PixelToWorldCheck {
 /// The table step's result (`table.toml`).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct TableStep {
+    /// The photograph of the board on the table.
     pub image: PathBuf,
+    /// The chessboard photographed.
     pub board: Board,
+    /// The camera's position and rotation over the table, found from the board's corners.
     pub pose: TablePose,
+    /// How far the pose maps the board's corners from their places on the table.
     pub check: PixelToWorldCheck,
 }
 
@@ -142,8 +149,11 @@ pub fn compose_rig(
 
 /// The gray chart step's inputs.
 pub struct ChartInputs<'a> {
+    /// The RAW photographs of the chart, one per LED in LED order.
     pub files: &'a [PathBuf],
+    /// The chart: its patch grid and the patches' nominal reflectances.
     pub chart: &'a ChartDescription,
+    /// The chart's rectangle in the photographs; `None`: found in the photographs.
     pub rect: Option<ChartRect>,
     /// The rig whose lights shade the chart (hand-measured or calibrated).
     pub rig: &'a Rig,
@@ -179,20 +189,31 @@ pub fn graychart_from_files(inputs: &ChartInputs) -> Result<(ChartReport, ChartR
 /// The white sheet's flatness re-solved with the fitted lights, from the same photographs.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SheetCheck {
+    /// Mean angle between a re-solved normal and straight up (degrees).
     pub mean_deg: f64,
+    /// Largest angle between a re-solved normal and straight up (degrees).
     pub max_deg: f64,
+    /// Largest angle from straight up of a 16x16-pixel block's mean normal (degrees): the
+    /// calibration's own error with the noise averaged away.
     pub block_max_deg: f64,
+    /// The level (degrees) the largest noise-only error stays under with probability 99.9 %, from
+    /// each pixel's predicted error: what `max_deg` may reach through sensor noise alone.
     pub predicted_noise_max_deg: f64,
 }
 
 /// The white sheet step's result (`whitesheet.toml`).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct WhiteSheetStep {
+    /// The RAW photographs of the sheet, one per LED in LED order.
     pub images: Vec<PathBuf>,
+    /// A photograph with every LED off, subtracted from each of `images`; `None`: no dark frame.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dark: Option<PathBuf>,
+    /// The sheet's diffuse reflectance, in (0, 1]; the measured intensities are divided by it.
     pub reflectance: f64,
+    /// Side of the square pixel blocks the sheet's images are averaged over (pixels).
     pub block_px: usize,
+    /// The LED fit: each LED's position and power, and whether the fit may be used.
     pub lights: LightFit,
     /// The sheet re-solved with the fitted lights (one exposure: sensor noise included).
     pub check: SheetCheck,
@@ -207,12 +228,18 @@ pub struct WhiteSheetStep {
 
 /// The white sheet step's inputs.
 pub struct SheetInputs<'a> {
+    /// The RAW photographs of the sheet, one per LED in LED order.
     pub files: &'a [PathBuf],
+    /// A photograph with every LED off, subtracted from each photograph; `None`: no dark frame.
     pub dark: Option<&'a Path>,
     /// Hand-measured LEDs, with the calibrated camera when there is one.
     pub rig: &'a Rig,
+    /// The sheet's diffuse reflectance, in (0, 1].
     pub reflectance: f64,
+    /// Side of the square pixel blocks the sheet's images are averaged over (pixels).
     pub block_px: usize,
+    /// Sensor pixels per image pixel (`None`: the photographs cover the whole sensor, full size or
+    /// binned).
     pub step: Option<f64>,
 }
 
@@ -285,9 +312,14 @@ fn read_sheet_maps(dir: &Path, lights: usize) -> Result<Vec<[Plane; 3]>> {
 pub struct BundleInputs {
     /// The hand-measured rig (used when there is no white-sheet step).
     pub rig: Rig,
+    /// The camera step's result and the file it was read from; `None`: the rig's own camera.
     pub camera: Option<(PathBuf, CameraCalibration)>,
+    /// The table step's result and its file; given exactly when `camera` is.
     pub table: Option<(PathBuf, TableStep)>,
+    /// The gray chart step's report and its file; `None`: the bundle has no gray-chart calibration.
     pub graychart: Option<(PathBuf, ChartReport)>,
+    /// The white sheet step's result and its file; `None`: the rig's LEDs as measured by hand, and
+    /// no intensity maps or gain grids.
     pub whitesheet: Option<(PathBuf, WhiteSheetStep)>,
 }
 

@@ -20,7 +20,11 @@ use crate::solve::{
 /// signal a white (reflectance 1) surface would give there, per channel.
 #[derive(Clone, Debug)]
 pub struct SheetLight {
+    /// Per block, row by row, the table point (world metres) the block's centre sees; zero where
+    /// its camera ray misses the table plane.
     pub points: Vec<Vector3<f64>>,
+    /// Per block, the linear signal (R, G, B) a surface of reflectance 1 would give; NaN for a
+    /// block with a saturated or non-finite pixel or whose ray misses the table.
     pub rgb: Vec<[f64; 3]>,
     /// Pixels averaged per block (their noise averages down by its square root).
     pub pixels_per_block: usize,
@@ -182,6 +186,7 @@ pub struct Flatness {
     pub pixels: usize,
     /// Exposures averaged per light.
     pub exposures: usize,
+    /// Mean angle between a solved normal and straight up (degrees).
     pub mean_deg: f64,
     /// The largest angle between a solved normal and straight up: "every normal".
     pub max_deg: f64,
@@ -193,7 +198,9 @@ pub struct Flatness {
     /// The level the largest of the pixels' noise-only errors stays under with probability
     /// 99.9 %, from each pixel's predicted error (see [`noise_max_of`]).
     pub predicted_noise_max_deg: f64,
+    /// The tolerance `flat` was judged against ([`FLATNESS_TOLERANCE_DEG`]), degrees.
     pub tolerance_deg: f64,
+    /// Whether every solved normal lies within `tolerance_deg` of straight up.
     pub flat: bool,
 }
 

@@ -23,6 +23,8 @@ use crate::rig::Rig;
 use crate::rig::{ChartDescription, ChartRect};
 use crate::solve::NoiseModel;
 
+/// The wizard's state file ([`State`] as TOML) in the bundle folder; a session that finds it there
+/// resumes.
 pub const STATE_FILE: &str = "wizard-state.toml";
 /// Accepted chessboard views the camera step asks for.
 pub const VIEWS_NEEDED: usize = 12;
@@ -64,20 +66,32 @@ pub trait TargetSource {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Step {
+    /// Taking chessboard photographs until [`VIEWS_NEEDED`] are accepted; then the camera is
+    /// calibrated.
     CameraViews,
+    /// Photographing the chessboard flat on the table for the table's pose.
     Table,
+    /// Reading the gray chart under every LED: white balance and linearity.
     GrayChart,
+    /// Photographing the white sheet under every LED and fitting the LED positions to it.
     WhiteSheet,
+    /// The final check (the sheet re-solved with the calibration), after which the bundle is
+    /// written.
     Flatness,
+    /// Every step taken and the bundle written.
     Done,
 }
 
 /// Everything needed to resume.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct State {
+    /// The step to take next.
     pub step: Step,
+    /// Name of the rig being calibrated (the hand-measured rig's), the bundle id's first part.
     pub rig_name: String,
+    /// The bundle's name, the bundle id's second part.
     pub name: String,
+    /// The chessboard used for the camera and table steps.
     pub board: Board,
     /// Photographs taken so far (accepted or not).
     pub attempts: usize,
@@ -85,16 +99,22 @@ pub struct State {
     pub accepted: Vec<String>,
     /// Rejected photographs and why.
     pub rejected: Vec<(String, String)>,
+    /// The results of the steps finished so far.
     pub calibration: Calibration,
 }
 
 /// What happened to one chessboard photograph.
 #[derive(Clone, Debug, Serialize)]
 pub struct ViewVerdict {
+    /// The photograph's name (`view-NNN`, numbered by attempt).
     pub name: String,
+    /// Whether the view was kept for the camera calibration.
     pub accepted: bool,
+    /// Why it was rejected, or what was found when it was accepted.
     pub reason: String,
+    /// Views accepted so far, this one included.
     pub accepted_so_far: usize,
+    /// Accepted views still to take before the camera can be calibrated.
     pub still_needed: usize,
     /// Regions of the frame no accepted view has covered yet.
     pub missing_regions: Vec<&'static str>,
@@ -103,12 +123,16 @@ pub struct ViewVerdict {
 /// The gray chart's step: its report, and whether it passed.
 #[derive(Clone, Debug, Serialize)]
 pub struct ChartVerdict {
+    /// Whether the chart passed: no patch clipped and every light's worst patch within its
+    /// `linearity_tolerance`.
     pub accepted: bool,
     /// Why not (empty when accepted).
     pub reasons: Vec<String>,
     /// Per light, the largest deviation from the linear fit that the shading model's
     /// uncertainty and the patches' sensor noise allow.
     pub linearity_tolerance: Vec<f64>,
+    /// The chart's white balance and linearity per light; no lights when the chart could not
+    /// be read at all (too few unclipped patches, say), with `reasons` saying why.
     pub report: ChartReport,
 }
 
@@ -121,11 +145,15 @@ pub const CHART_WORLD: [f64; 4] = [-0.06, 0.06, -0.025, 0.025];
 
 /// The wizard over one bundle folder.
 pub struct Wizard {
+    /// The bundle folder: the state file, the accepted views (`views/`) and finally the bundle.
     pub dir: PathBuf,
+    /// The rig as measured by hand, which each calibrated step refines.
     pub hand: Rig,
+    /// Where the session stands; saved to [`STATE_FILE`] after every step.
     pub state: State,
     /// The gray chart and where on the table the operator lays it.
     pub chart: ChartDescription,
+    /// Where the chart lies on the table, `[x0, x1, y0, y1]` in world metres.
     pub chart_world: [f64; 4],
 }
 

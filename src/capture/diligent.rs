@@ -27,11 +27,18 @@ use crate::plane::{Frames, LightFrame, Mask, Plane, SensorWindow};
 use crate::progress::Progress;
 use crate::raw::{decode_dn_image, Levels};
 
+/// The file listing the images, one file name per line; line `k` is light `k`.
 pub const FILENAMES: &str = "filenames.txt";
+/// The file of light directions, one `x y z` unit vector toward the light per line (DiLiGenT's
+/// frame).
 pub const LIGHT_DIRECTIONS: &str = "light_directions.txt";
+/// The file of light intensities, one `r g b` relative intensity per line.
 pub const LIGHT_INTENSITIES: &str = "light_intensities.txt";
+/// The optional object mask (nonzero = object).
 pub const MASK: &str = "mask.png";
+/// The optional ground-truth normals (MATLAB v5 file).
 pub const NORMAL_TRUTH: &str = "Normal_gt.mat";
+/// The variable in [`NORMAL_TRUTH`] that holds the normals, an H x W x 3 array.
 pub const NORMAL_TRUTH_VARIABLE: &str = "Normal_gt";
 
 /// DiLiGenT images are 16-bit: 65535 is the white (saturation) level.
@@ -50,10 +57,13 @@ pub fn diligent_to_world(v: [f64; 3]) -> [f64; 3] {
 /// A DiLiGenT-layout set opened for reading.
 #[derive(Clone, Debug)]
 pub struct DiligentSet {
+    /// The set's folder.
     pub dir: PathBuf,
+    /// The image file names from [`FILENAMES`], in light order, relative to `dir`.
     pub files: Vec<String>,
     /// Unit directions toward the lights, in psscan's world frame.
     pub directions: Vec<[f64; 3]>,
+    /// Per light, its relative R, G, B intensity from [`LIGHT_INTENSITIES`] (each positive).
     pub intensities: Vec<[f64; 3]>,
 }
 

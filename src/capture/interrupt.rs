@@ -11,14 +11,17 @@ use std::time::{Duration, Instant};
 pub struct Interrupt(Arc<AtomicBool>);
 
 impl Interrupt {
+    /// A flag not yet set; clones share it.
     pub fn new() -> Self {
         Self::default()
     }
 
+    /// Asks everything holding a clone to stop (the CLI's Ctrl-C handler calls this).
     pub fn set(&self) {
         self.0.store(true, Ordering::SeqCst);
     }
 
+    /// Whether a stop has been asked for.
     pub fn is_set(&self) -> bool {
         self.0.load(Ordering::SeqCst)
     }

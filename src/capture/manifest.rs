@@ -9,8 +9,11 @@ use crate::error::{Error, Result};
 use crate::plane::SensorWindow;
 use crate::raw::Levels;
 
+/// The manifest's file name inside a capture set's folder.
 pub const MANIFEST_FILE: &str = "manifest.toml";
+/// The `format` every capture manifest carries; anything else is not a psscan capture set.
 pub const FORMAT: &str = "psscan-capture";
+/// The manifest version this build writes and reads; other versions are refused with a message.
 pub const VERSION: u32 = 1;
 
 /// `image.encoding` of sets whose frames are 16-bit RGB PNG/TIFF of raw digital numbers.
@@ -18,12 +21,17 @@ pub const ENCODING_DN16: &str = "dn16";
 /// `image.encoding` of sets whose frames are camera RAW files (NEF, CR2, DNG, ...): the CFA
 /// samples and their levels come from each file.
 pub const ENCODING_RAW: &str = "raw";
+/// Every `image.encoding` this build reads.
 pub const ENCODINGS: [&str; 2] = [ENCODING_DN16, ENCODING_RAW];
 
+/// A capture set's `manifest.toml`: the rig and calibration it was shot with, the image geometry
+/// and levels, the camera settings, and one entry per frame with its checksum.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Manifest {
+    /// Always [`FORMAT`]; checked before anything else is parsed.
     pub format: String,
+    /// The manifest's version; this build reads [`VERSION`] only.
     pub version: u32,
     /// The rig the set was shot with, a file inside the set (a copy, so the set stands alone).
     pub rig_file: String,
@@ -31,19 +39,26 @@ pub struct Manifest {
     /// where it was. A solve checks the bundle it uses against this.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub calibration: Option<crate::rig::CalibrationRef>,
+    /// The frames' size, place on the sensor, levels, exposure and encoding.
     pub image: ImageInfo,
+    /// The camera and exposure settings recorded for the set (fields left empty where unknown).
     pub camera: CameraSettings,
     /// Present for sets rendered by `psscan synth`: where the ground truth lies.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub synthetic: Option<SyntheticInfo>,
+    /// Every frame in the set: at most one dark frame and one light frame per LED, each file listed
+    /// once.
     #[serde(default)]
     pub frames: Vec<FrameEntry>,
 }
 
+/// The geometry, levels and storage of a set's frames.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ImageInfo {
+    /// Frame width in pixels (for `raw`, the mosaic's).
     pub width: usize,
+    /// Frame height in pixels (for `raw`, the mosaic's).
     pub height: usize,
     /// Where the image pixels sit on the sensor (for `raw`: where the CFA samples sit).
     pub window: SensorWindow,
@@ -57,18 +72,25 @@ pub struct ImageInfo {
     pub encoding: String,
 }
 
+/// The camera and its exposure settings as a set records them; a RAW frame whose metadata
+/// disagrees with a recorded setting is refused on loading.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct CameraSettings {
+    /// The camera's name or model as it reports itself.
     pub model: String,
+    /// ISO sensitivity; `None`: not known (the camera did not report it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub iso: Option<u32>,
+    /// Shutter time in seconds; `None`: not known.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub shutter_s: Option<f64>,
+    /// Aperture as an f-number (8.0 for f/8); `None`: not known.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub aperture: Option<f64>,
 }
 
+/// Where a synthetic set's ground truth and render specification lie, both inside the set.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SyntheticInfo {
@@ -78,6 +100,7 @@ pub struct SyntheticInfo {
     pub spec_file: String,
 }
 
+/// Whether a frame was shot with all LEDs off or with one on.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FrameKind {
@@ -87,19 +110,26 @@ pub enum FrameKind {
     Light,
 }
 
+/// One frame of a capture set as the manifest lists it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FrameEntry {
+    /// Dark frame or light frame.
     pub kind: FrameKind,
     /// LED index for `light` frames.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub light: Option<usize>,
     /// File name relative to the set's folder.
     pub file: String,
+    /// Lower-case hex SHA-256 of the file's bytes, checked when the set is read.
     pub sha256: String,
 }
 
 impl Manifest {
+    /// Parses and validates `text`, the contents of the manifest at `path` (named in errors).
+    /// Format and version are checked first, so a manifest from another tool or a newer psscan
+    /// fails with an error saying so rather than one about an unknown field; then come the
+    /// structural checks of [`Manifest::validate`].
     pub fn parse(text: &str, path: &Path) -> Result<Manifest> {
         // Check format and version first, so a newer manifest gets a message about versions
         // rather than about some field this build does not know.
@@ -134,6 +164,7 @@ impl Manifest {
         Ok(manifest)
     }
 
+    /// The manifest as pretty-printed TOML, as written to `manifest.toml`.
     pub fn to_toml_string(&self) -> String {
         toml::to_string_pretty(self).expect("a manifest always serialises")
     }
@@ -224,6 +255,7 @@ impl Manifest {
             .find(|f| f.kind == FrameKind::Light && f.light == Some(k))
     }
 
+    /// The dark frame's entry; `None` when the set has no dark frame.
     pub fn dark_frame(&self) -> Option<&FrameEntry> {
         self.frames.iter().find(|f| f.kind == FrameKind::Dark)
     }

@@ -61,13 +61,20 @@ pub enum FrameStatus {
     Kept,
 }
 
+/// One frame of the set as this session left it: shot now or kept from an earlier session, with
+/// what the controller and camera said about it.
 #[derive(Clone, Debug, Serialize)]
 pub struct FrameRecord {
+    /// The frame's file name inside the set (`dark.<ext>` or `Lkk.<ext>`).
     pub file: String,
+    /// Dark frame or light frame.
     pub kind: FrameKind,
+    /// The LED lit for a light frame; `None` for the dark frame.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub light: Option<usize>,
+    /// Lower-case hex SHA-256 of the stored file, as the manifest records it.
     pub sha256: String,
+    /// Whether the frame was shot in this session or kept from an earlier one.
     pub status: FrameStatus,
     /// The controller's `STATE` right before the shot.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -76,6 +83,7 @@ pub struct FrameRecord {
     /// mock).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub lit_at_fire: Option<Vec<usize>>,
+    /// When the shutter opened, Unix microseconds; `None` for a kept frame.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fired_unix_us: Option<u64>,
 }
@@ -83,17 +91,28 @@ pub struct FrameRecord {
 /// The session's summary (`psscan capture --json`).
 #[derive(Clone, Debug, Serialize)]
 pub struct CaptureReport {
+    /// The capture set's folder.
     pub dir: PathBuf,
+    /// The LED controller's name for messages (e.g. the serial device it is on).
     pub controller: String,
+    /// What the controller's firmware reported about itself when the session began.
     pub firmware: FirmwareInfo,
+    /// The camera's name.
     pub camera: String,
+    /// The camera settings read from the camera at the start of the session.
     pub camera_settings: CameraSettings,
+    /// Every frame of the set in shooting order (the dark frame first, then LED 0, 1, ...), shot or
+    /// kept.
     pub frames: Vec<FrameRecord>,
+    /// Frames shot in this session.
     pub shot: usize,
+    /// Frames kept from an earlier session without shooting them again.
     pub kept: usize,
     /// Frames an earlier session left damaged or missing, shot again.
     pub dropped: Vec<DroppedFrame>,
+    /// Keepalive pings sent to the controller while the session ran.
     pub keepalive_pings: u64,
+    /// Wall-clock durations by stage name, seconds (today only `total`, the whole session).
     pub timings_s: BTreeMap<String, f64>,
 }
 

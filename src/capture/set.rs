@@ -21,6 +21,7 @@ use crate::raw::{
 use crate::rig::Rig;
 use crate::timing::{Busy, StageClock};
 
+/// The name of the set's copy of its rig, inside the set's folder.
 pub const RIG_FILE: &str = "rig.toml";
 
 /// The file name psscan gives LED `k`'s frame.
@@ -102,10 +103,12 @@ impl CaptureSetWriter {
         Ok((writer, dropped))
     }
 
+    /// The set's folder.
     pub fn dir(&self) -> &Path {
         &self.dir
     }
 
+    /// The manifest as written so far: the frames stored until now.
     pub fn manifest(&self) -> &Manifest {
         &self.manifest
     }
@@ -140,6 +143,7 @@ impl CaptureSetWriter {
         self.write_manifest()
     }
 
+    /// Records where a synthetic set's ground truth and render specification lie.
     pub fn set_synthetic(&mut self, info: SyntheticInfo) -> Result<()> {
         self.manifest.synthetic = Some(info);
         self.write_manifest()
@@ -156,7 +160,9 @@ impl CaptureSetWriter {
 /// A frame an interrupted set listed that could not be kept on resume, and why.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct DroppedFrame {
+    /// The frame's file name, as the manifest listed it.
     pub file: String,
+    /// Why it could not be kept (missing, not a plain file, or its SHA-256 changed).
     pub reason: String,
 }
 
@@ -240,14 +246,20 @@ pub const HASH_STAGE: &str = "hash check";
 
 /// A set's light frames developed for a solve, and how they were made.
 pub struct LoadedFrames {
+    /// The light frames in LED order, as linear RGB planes ready for the solve.
     pub frames: Frames,
+    /// How the frames were decoded and developed, for the solve's report.
     pub info: DecodeInfo,
 }
 
 /// A capture set opened for reading.
 pub struct CaptureSet {
+    /// The set's folder.
     pub dir: PathBuf,
+    /// The set's manifest, parsed and structurally validated.
     pub manifest: Manifest,
+    /// The rig the frames are solved with: the set's own copy, or the one given to
+    /// [`CaptureSet::open`].
     pub rig: Rig,
 }
 

@@ -18,9 +18,13 @@ pub use job::{region_truth, select_region, RegionJob};
 /// A pixel rectangle: top-left corner and size.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Roi {
+    /// Left edge: the rectangle's first column, pixels.
     pub x: usize,
+    /// Top edge: the rectangle's first row, pixels.
     pub y: usize,
+    /// Width in pixels (at least 1).
     pub width: usize,
+    /// Height in pixels (at least 1).
     pub height: usize,
 }
 
@@ -199,6 +203,7 @@ pub enum Background {
 }
 
 impl Background {
+    /// The `--background` argument: `none`, `auto`, or else the path of a mask image.
     pub fn parse(text: &str) -> Background {
         match text {
             "none" => Background::None,
@@ -388,13 +393,16 @@ fn otsu(values: &[f64]) -> Option<(f64, f64, f64, f64)> {
 /// What region selection did, for the report.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct RegionInfo {
+    /// The crop applied, in the pixels of the frames as loaded; `None`: no crop.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub roi: Option<Roi>,
+    /// Binning factor applied after the crop: 1 (none) or 2 (2x2 blocks).
     pub bin: usize,
     /// `none`, `auto` or the mask file.
     pub background: String,
     /// Pixels inside the background mask (all when there is none).
     pub sample_pixels: usize,
+    /// What the automatic background mask found; `None` unless `background` is `auto`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub auto: Option<AutoMask>,
 }

@@ -41,16 +41,19 @@ pub struct SetOutcome {
     pub set: PathBuf,
     /// Its output folder.
     pub out: PathBuf,
+    /// What the folder holds; `None` when the set failed before its kind was known.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub kind: Option<SetKind>,
     /// `solved` or `failed`.
     pub status: &'static str,
+    /// Why the set failed, as the error's message; `None` when it was solved.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
     /// The failure behind `error`, for a caller that acts on its kind (the CLI adds the flag
     /// that gets past it); `None` for failures found before the set was opened.
     #[serde(skip)]
     pub failure: Option<Arc<Error>>,
+    /// The solve's headline figures; `None` when the set failed.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub summary: Option<SetSummary>,
 }

@@ -90,7 +90,9 @@ pub trait SetSource: Sync {
 pub enum Truth {
     /// Unit normals and per-channel albedo at every pixel (synthetic sets).
     Surface {
+        /// Unit normals in the world frame, x, y and z planes.
         normal: [Plane; 3],
+        /// Linear diffuse albedo, R, G and B planes.
         albedo: [Plane; 3],
     },
     /// Unit normals over the solve's mask, zero where unknown (benchmark sets, which have no

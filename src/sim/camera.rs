@@ -24,7 +24,9 @@ use crate::synth::{expose, Scene, SynthSpec};
 
 /// Where the simulated camera learns which LEDs are on.
 pub trait LitSource: Send {
+    /// The LEDs on at this moment, by controller index (empty: all off).
     fn lit(&mut self) -> Result<Vec<usize>>;
+    /// Names the source for the camera's name and messages, e.g. `pin log <path>`.
     fn name(&self) -> String;
 }
 
@@ -70,12 +72,14 @@ pub enum SimOutput {
 }
 
 impl SimOutput {
+    /// The manifest's `image.encoding` for frames in this format.
     pub fn encoding(&self) -> &'static str {
         match self {
             SimOutput::Dn16Png => "dn16",
         }
     }
 
+    /// The file extension of frames in this format, without the dot.
     pub fn extension(&self) -> &'static str {
         match self {
             SimOutput::Dn16Png => "png",
@@ -89,6 +93,8 @@ impl SimOutput {
     }
 }
 
+/// The simulated textile camera: renders the synthetic scene under whichever LEDs its [`LitSource`]
+/// reports on when it fires, exposes it through the rig's sensor model, and stores the frame.
 pub struct SimCamera<'a> {
     rig: &'a Rig,
     spec: SynthSpec,
@@ -113,11 +119,14 @@ impl<'a> SimCamera<'a> {
         })
     }
 
+    /// The camera waiting `delay` between the trigger and the shutter (a slow camera, for fault
+    /// tests).
     pub fn with_delay_before_fire(mut self, delay: Duration) -> Self {
         self.delay_before_fire = delay;
         self
     }
 
+    /// The synthetic scene the camera photographs, with its ground truth.
     pub fn scene(&self) -> &Scene<'a> {
         &self.scene
     }

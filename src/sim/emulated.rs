@@ -24,8 +24,11 @@ use crate::synth::{demo, DemoPaths, Scene, SynthSpec};
 
 /// A running emulator with the serial link open on its pty.
 pub struct EmulatedController {
+    /// The firmware running in its emulator; it stops when this is dropped.
     pub emulator: Emulator,
+    /// The serial link to the emulator's pty, shareable with the keepalive thread.
     pub lights: SharedLights,
+    /// The identity the firmware gave at the handshake.
     pub firmware: FirmwareInfo,
 }
 
@@ -48,6 +51,7 @@ impl EmulatedController {
         })
     }
 
+    /// A reader of the emulator's pin log: which LEDs the firmware's pins had on, and when.
     pub fn pin_log(&self) -> PinLog {
         self.emulator.pin_log()
     }
@@ -110,35 +114,56 @@ pub fn capture_synthetic(
 /// log) when the camera fired.
 #[derive(Clone, Debug, Serialize)]
 pub struct DemoFrame {
+    /// The frame's file name in the capture set.
     pub file: String,
+    /// The LED the frame was meant to show; `None` for the dark frame.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub light: Option<usize>,
+    /// The LEDs the simulated camera saw lit (from the pin log) when it fired; empty when it could
+    /// not know.
     pub lit_at_fire: Vec<usize>,
+    /// When the camera fired, Unix microseconds (0 when not known).
     pub fired_unix_us: u64,
 }
 
 /// `psscan demo --firmware-sim --json`.
 #[derive(Clone, Debug, Serialize)]
 pub struct FirmwareSimDemoSummary {
+    /// The rig's name (the default rig).
     pub rig: String,
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// LEDs in the rig, one light frame each.
     pub lights: usize,
+    /// Angle between solved and true normals over the solved pixels (degrees).
     pub normal_error_deg: crate::eval::Stats,
+    /// Mean normal error the solve predicts from sensor noise (degrees; NaN when not computed).
     pub predicted_normal_error_deg: Mean,
+    /// `|albedo - true| / true` per channel over the solved pixels.
     pub albedo_rel_error: crate::eval::Stats,
+    /// Solved pixels compared with the ground truth.
     pub solved_pixels: usize,
+    /// The identity the emulated firmware gave.
     pub firmware: FirmwareInfo,
+    /// The emulator's pseudo-terminal the serial link used.
     pub port: String,
+    /// The pin log the emulator wrote, `<out>/firmware-sim/pins.log`.
     pub pin_log: PathBuf,
+    /// Every frame of the capture, with the LEDs lit when it was shot.
     pub frames: Vec<DemoFrame>,
     /// Shots at which the pin log shows anything but the one intended LED (or, for the dark
     /// frame, any LED): 0 in a correct run.
     pub shots_with_wrong_leds: usize,
     /// The most LEDs the pin log ever shows on together (1 in a correct run).
     pub max_leds_on_together: usize,
+    /// Keepalive pings sent to the firmware during the capture.
     pub keepalive_pings: u64,
+    /// Wall-clock durations by stage, seconds: `capture`, the solve's stages as `solve_<stage>`,
+    /// and `total`.
     pub timings_s: BTreeMap<String, f64>,
+    /// Where the demo wrote the capture set, the maps and the report.
     pub paths: DemoPaths,
 }
 

@@ -21,7 +21,9 @@ const BUILD_HINT: &str = "build it with `make -C firmware all sim` (Debian packa
 /// Where the harness and the firmware image are.
 #[derive(Clone, Debug)]
 pub struct EmulatorFiles {
+    /// The simavr harness executable, `psscan-avr-sim`.
     pub harness: PathBuf,
+    /// The firmware image the harness runs, `psscan_led.elf`.
     pub firmware: PathBuf,
 }
 
@@ -173,10 +175,12 @@ impl Emulator {
         &self.pty
     }
 
+    /// A reader of the pin log this emulator writes.
     pub fn pin_log(&self) -> PinLog {
         PinLog::new(&self.pin_log)
     }
 
+    /// The harness's process id; `None` once it has been stopped or killed.
     pub fn pid(&self) -> Option<u32> {
         self.child.as_ref().map(|c| c.id())
     }
@@ -224,10 +228,13 @@ impl Drop for Emulator {
 /// One LED pin change in the pin log.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 pub struct PinEvent {
+    /// Simulated time of the change, microseconds since the simulation started.
     pub sim_us: u64,
     /// Microseconds since the harness started (monotonic clock).
     pub wall_us: u64,
+    /// The LED whose pin changed, by its controller index.
     pub led: usize,
+    /// Whether the pin went high (LED on) or low.
     pub on: bool,
 }
 
@@ -236,7 +243,9 @@ pub struct PinEvent {
 pub struct PinHistory {
     /// Unix time (µs) of the harness's start: `start_unix_us + wall_us` is an event's time.
     pub start_unix_us: u64,
+    /// LED channels the harness logs (from the log's header).
     pub leds: usize,
+    /// Every LED pin change, in the order logged.
     pub events: Vec<PinEvent>,
     /// `# reset`, `# exit`, ... markers, with their simulated time.
     pub markers: Vec<(String, u64)>,
@@ -287,12 +296,14 @@ pub struct PinLog {
 }
 
 impl PinLog {
+    /// A reader of the pin log at `path` (the file need not exist yet).
     pub fn new(path: &Path) -> PinLog {
         PinLog {
             path: path.to_path_buf(),
         }
     }
 
+    /// The pin log's path.
     pub fn path(&self) -> &Path {
         &self.path
     }

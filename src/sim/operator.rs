@@ -29,6 +29,7 @@ const SIM_FLAT_EXPOSURE: f64 = 1.0;
 
 /// The simulated operator's hands: where the board is held for each photograph.
 pub struct BoardPoses {
+    /// The board held: its corners, square size and white border.
     pub chess: Chessboard,
     poses: Vec<BoardPose>,
 }
@@ -69,6 +70,8 @@ impl BoardPoses {
 /// with an operator who now and then holds the board half out of the frame. Quick; no LEDs,
 /// no camera.
 pub struct Simulated {
+    /// The rig as built, whose camera and LEDs render the targets (not the hand-measured rig the
+    /// wizard is given).
     pub truth: Rig,
     poses: BoardPoses,
     grid: RayGrid,
@@ -167,7 +170,9 @@ impl TargetSource for Simulated {
 /// The simulated side of a [`Captured`](crate::calibration::capture::Captured) source: the
 /// operator (an [`Operator`]) and the stage the simulated camera photographs.
 pub struct SimScene {
+    /// The rig as built that the simulated camera renders through.
     pub truth: Rig,
+    /// Where the operator places each target for the simulated camera to photograph.
     pub stage: Stage,
     poses: BoardPoses,
     /// Exposure of the chessboard views: a white print at the table centre under the view LED

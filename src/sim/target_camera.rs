@@ -33,13 +33,18 @@ pub enum Target {
     Chessboard(BoardPose),
     /// The gray chart's patches filling the world rectangle `[x0, x1, y0, y1]` on the table.
     GrayChart {
+        /// The chart: its patch grid and the patches' reflectances.
         chart: ChartDescription,
+        /// Where its patches lie on the table, `[x0, x1, y0, y1]` in world metres.
         world: [f64; 4],
     },
     /// The white sheet on the table (reflectance, relative fibre texture, its seed).
     WhiteSheet {
+        /// The sheet's mean diffuse reflectance, in (0, 1].
         reflectance: f64,
+        /// Relative amplitude of the paper's fibre texture around the mean (0: perfectly uniform).
         texture: f64,
+        /// Seed of the fibre pattern.
         seed: u64,
     },
 }
@@ -47,6 +52,7 @@ pub enum Target {
 /// The target and how the simulated camera is set for it.
 #[derive(Clone, Debug)]
 pub struct Placement {
+    /// What is in front of the camera.
     pub target: Target,
     /// Frames are the whole sensor taken every `step` pixels (the simulation's stand-in for a
     /// full-resolution RAW, which the wizard would bin down to the same size).
@@ -76,15 +82,19 @@ impl Default for Placement {
 pub struct Stage(Arc<Mutex<Placement>>);
 
 impl Stage {
+    /// Puts `placement` in front of the camera, replacing what was there.
     pub fn place(&self, placement: Placement) {
         *self.0.lock().unwrap_or_else(|p| p.into_inner()) = placement;
     }
 
+    /// What is in front of the camera now.
     pub fn current(&self) -> Placement {
         self.0.lock().unwrap_or_else(|p| p.into_inner()).clone()
     }
 }
 
+/// The simulated calibration camera: renders the [`Stage`]'s current target through the rig as
+/// built, lit by the LEDs its [`LitSource`] reports on when it fires, and stores 16-bit PNG frames.
 pub struct TargetCamera {
     /// The rig as built.
     truth: Rig,
@@ -97,6 +107,9 @@ pub struct TargetCamera {
 }
 
 impl TargetCamera {
+    /// A camera rendering through `truth` (the rig as built), photographing `chess` when the
+    /// chessboard is placed, watching `stage` for the target, asking `source` which LEDs are lit,
+    /// with sensor noise seeded by `seed`.
     pub fn new(
         truth: Rig,
         chess: Chessboard,

@@ -30,12 +30,16 @@ use crate::rig::Rig;
 /// effects, the noise, and the exposure.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SynthSpec {
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
     /// Sensor pixels per image pixel (1: full resolution; 8: every 8th pixel, covering
     /// 8x the field at 1/64 of the cost).
     pub step: f64,
+    /// The textile rendered.
     pub textile: Textile,
+    /// Which effects beyond Lambertian shading are rendered (cast shadows, sheen).
     pub scene: SceneOptions,
     /// `None`: rounding and clipping only.
     pub noise_seed: Option<u64>,
@@ -103,6 +107,8 @@ impl SynthSpec {
         )
     }
 
+    /// The sensor noise the spec asks for: seeded photon and read noise, or rounding and clipping
+    /// only when `noise_seed` is `None`.
     pub fn noise(&self) -> Noise {
         match self.noise_seed {
             Some(seed) => Noise::Seeded(seed),

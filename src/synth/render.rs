@@ -41,10 +41,14 @@ pub struct GroundTruth {
 pub struct Scene<'a> {
     rig: &'a Rig,
     textile: Textile,
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// Where the image's pixels sit on the rig's sensor.
     pub window: SensorWindow,
     options: SceneOptions,
+    /// The exact normal, albedo and height at every pixel.
     pub truth: GroundTruth,
     /// World point on the mean plane seen by each pixel (x, y only; z is the plane).
     points: Vec<[f64; 2]>,
@@ -134,6 +138,7 @@ impl<'a> Scene<'a> {
         })
     }
 
+    /// The textile the scene samples.
     pub fn textile(&self) -> &Textile {
         &self.textile
     }

@@ -5,6 +5,7 @@
 
 use serde::{Deserialize, Serialize};
 
+/// How the warp and weft threads cross over and under each other.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Weave {
@@ -17,6 +18,7 @@ pub enum Weave {
 /// Everything that defines the textile; seeded and deterministic.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Textile {
+    /// The weave pattern.
     pub weave: Weave,
     /// Centre-to-centre thread spacing.
     pub thread_pitch_m: f64,
@@ -28,17 +30,23 @@ pub struct Textile {
     pub crimp_m: f64,
     /// Spacing and depth of the twisted fibre ridges along each thread.
     pub fibre_period_m: f64,
+    /// Depth of those fibre ridges (metres).
     pub fibre_depth_m: f64,
+    /// How far the fibre ridges slant from straight across the thread (degrees).
     pub twist_deg: f64,
     /// Slow folds of the sample (large-scale normal variation).
     pub fold_amplitude_m: f64,
+    /// Wavelength of the folds (metres).
     pub fold_wavelength_m: f64,
     /// Linear albedo of the thread colours, and the plaid sett as (colour, thread count)
     /// stripes repeated across both warp and weft.
     pub palette: Vec<[f64; 3]>,
+    /// The plaid sett: `(palette index, thread count)` stripes, in order, repeated across both warp
+    /// and weft.
     pub sett: Vec<(usize, usize)>,
     /// Albedo of the backing seen through the gaps.
     pub gap_albedo: [f64; 3],
+    /// Seed of the per-thread variation (the phase of each thread's fibre ridges).
     pub seed: u64,
 }
 
@@ -82,15 +90,22 @@ impl Default for Textile {
 /// Which part of the weave is on top at a point.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Visible {
+    /// Warp thread `i` is on top (warp threads run along y; thread `i` spans x from `i` to
+    /// `i + 1` pitches).
     Warp(i64),
+    /// Weft thread `j` is on top (weft threads run along x; thread `j` spans y from `j` to
+    /// `j + 1` pitches).
     Weft(i64),
+    /// No thread: the backing seen through the gap between threads.
     Gap,
 }
 
 /// Height (m, relative to the sample's mean plane) and what is on top there.
 #[derive(Clone, Copy, Debug)]
 pub struct SurfacePoint {
+    /// Height of the surface above the sample's mean plane, metres, folds included.
     pub height: f64,
+    /// The thread (or gap) on top there.
     pub visible: Visible,
     /// Fibre ridge phase in [-1, 1] at the visible thread (albedo varies with it).
     pub ridge: f64,
@@ -182,6 +197,7 @@ impl Textile {
         best
     }
 
+    /// Height of the surface at world point `(x, y)` above the sample's mean plane, metres.
     pub fn height_at(&self, x: f64, y: f64) -> f64 {
         self.surface_at(x, y).height
     }
@@ -225,6 +241,8 @@ impl Textile {
         self.thread_height_m + self.crimp_m + self.fibre_depth_m + self.fold_amplitude_m
     }
 
+    /// Lowest the surface can be: the gaps' floor at the bottom of a fold (metres, relative to the
+    /// mean plane).
     pub fn min_height(&self) -> f64 {
         -0.5 * self.thread_height_m - self.fold_amplitude_m
     }

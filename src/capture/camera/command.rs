@@ -17,6 +17,8 @@ use crate::rig::Rig;
 
 const OUT: &str = "{out}";
 
+/// A camera that runs an external command for every shot: the command template, split into
+/// arguments, with `{out}` replaced by the file the frame must be written to.
 pub struct CommandCamera {
     template: String,
     argv: Vec<String>,

@@ -50,6 +50,7 @@ pub struct MockLights {
 pub struct MockProbe(Arc<Mutex<MockState>>);
 
 impl MockLights {
+    /// A mock with `leds` LED channels, all off, a 3 s silence timeout and no faults planned.
     pub fn new(leds: usize) -> MockLights {
         MockLights {
             leds,
@@ -65,11 +66,14 @@ impl MockLights {
         }
     }
 
+    /// The mock with `fault` added to its plan, played when the request it names arrives.
     pub fn with_fault(self, fault: MockFault) -> MockLights {
         lock(&self.shared).faults.push(fault);
         self
     }
 
+    /// A handle that sees this mock's LEDs and request log from outside, even after the mock itself
+    /// has been moved into a [`super::SharedLights`].
     pub fn probe(&self) -> MockProbe {
         MockProbe(self.shared.clone())
     }

@@ -50,6 +50,7 @@ pub trait LightController: Send {
 pub struct SharedLights(Arc<Mutex<Box<dyn LightController>>>);
 
 impl SharedLights {
+    /// Wraps `controller` for sharing; clones of the result drive the same controller.
     pub fn new(controller: Box<dyn LightController>) -> Self {
         SharedLights(Arc::new(Mutex::new(controller)))
     }

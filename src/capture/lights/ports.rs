@@ -10,17 +10,23 @@ use crate::error::{Error, PortSearch, Result};
 /// One serial port and what is known about it.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize)]
 pub struct PortInfo {
+    /// The port's device path, e.g. `/dev/ttyACM0` or `COM3`.
     pub path: String,
     /// `usb`, `pci`, `bluetooth` or `other`.
     pub kind: String,
+    /// USB vendor ID; `None` for a port that is not USB.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub vid: Option<u16>,
+    /// USB product ID; `None` for a port that is not USB.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub pid: Option<u16>,
+    /// The USB manufacturer string, when the device reports one.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub manufacturer: Option<String>,
+    /// The USB product string, when the device reports one.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub product: Option<String>,
+    /// The USB serial number, when the device reports one.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub serial_number: Option<String>,
     /// The board or bridge these IDs belong to, when psscan knows them.

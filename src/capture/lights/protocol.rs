@@ -18,11 +18,18 @@ pub const TIMEOUT_RANGE_MS: std::ops::RangeInclusive<u32> = 100..=60000;
 /// One command line.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Command {
+    /// `ID`: asks the firmware who it is (answered `OK ID <identity>`).
     Id,
+    /// `ON <n>`: LED `n` on, every other LED off.
     On(usize),
+    /// `OFF`: every LED off.
     Off,
+    /// `STATE`: asks which LED is on, the silence timeout, and whether it tripped.
     State,
+    /// `TIMEOUT <ms>`: sets the host-silence timeout, in milliseconds (within
+    /// [`TIMEOUT_RANGE_MS`]).
     Timeout(u32),
+    /// `PING`: a keepalive that only restarts the host-silence clock (answered `OK PONG`).
     Ping,
 }
 
@@ -69,8 +76,11 @@ impl Command {
 /// What an `OK` answer carried.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Answer {
+    /// The command was carried out and carries nothing back (`ON`, `OFF`, `TIMEOUT`, `PING`).
     Done,
+    /// The firmware's identity, answering `ID`.
     Identity(FirmwareInfo),
+    /// The LEDs' state, answering `STATE`.
     State(LightState),
 }
 
@@ -80,7 +90,13 @@ pub enum Reply {
     /// `OK <rest>`.
     Ok(String),
     /// `ERR <code> <reason>`.
-    Err { code: u32, reason: String },
+    Err {
+        /// The error's number (PROTOCOL.md: 1 unknown command, 2 bad argument, 3 line too
+        /// long, 4 out of range, 5 bad character).
+        code: u32,
+        /// The fixed reason text that follows the code (possibly empty).
+        reason: String,
+    },
     /// The banner after a reset: `READY <identity>`.
     Ready(String),
 }
@@ -113,9 +129,13 @@ pub fn parse_reply(line: &str) -> Result<Reply, String> {
 /// The firmware's identity: `psscan-led fw=1.0.0 proto=1 leds=10`.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize)]
 pub struct FirmwareInfo {
+    /// The firmware's name; [`FIRMWARE_NAME`] for firmware this host can drive.
     pub name: String,
+    /// The firmware's version string (`fw=`).
     pub firmware_version: String,
+    /// The protocol version the firmware speaks (`proto=`).
     pub protocol: u32,
+    /// LED channels the controller drives (`leds=`).
     pub leds: usize,
 }
 

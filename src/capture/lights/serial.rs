@@ -17,6 +17,7 @@ use crate::error::{Error, LinkError, PortProblem, Result};
 /// How to talk to the controller.
 #[derive(Clone, Debug)]
 pub struct SerialOptions {
+    /// Line speed in baud (the firmware's is 115200).
     pub baud: u32,
     /// How long to wait for the `READY` banner after opening (an Uno resets when the port
     /// opens and runs its bootloader for 0.5-2 s). `None`: 2.5 s on a serial device, none on a
@@ -43,7 +44,9 @@ impl Default for SerialOptions {
 pub struct LineNoise {
     /// The command line to damage, e.g. `ON 3`.
     pub command: String,
+    /// How many more times the command is damaged; at zero the noise stops.
     pub times: usize,
+    /// The bytes written to the line right before the command.
     pub garbage: Vec<u8>,
 }
 
@@ -102,6 +105,7 @@ impl SerialLights {
         Ok(lights)
     }
 
+    /// The serial port's path, as opened.
     pub fn path(&self) -> &str {
         &self.path
     }
@@ -116,6 +120,7 @@ impl SerialLights {
         self.resets
     }
 
+    /// Damages a command the next times it is sent ([`LineNoise`]); `None` stops any damage.
     pub fn set_line_noise(&mut self, noise: Option<LineNoise>) {
         self.noise = noise;
     }

@@ -23,15 +23,19 @@ use crate::rig::{Board, Camera, Rig};
 /// squares around the pattern.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Chessboard {
+    /// The pattern: inner corners and square size.
     pub board: Board,
+    /// Width of the white paper border around the squares, in squares.
     pub border_squares: f64,
 }
 
 impl Chessboard {
+    /// The inner corners in the board frame (metres), row by row, as the calibration expects them.
     pub fn object_points(&self) -> Vec<[f64; 3]> {
         self.board.object_points()
     }
 
+    /// Centre of the inner-corner grid in the board frame (metres).
     pub fn centre(&self) -> [f64; 2] {
         self.board.centre()
     }
@@ -58,8 +62,11 @@ impl Chessboard {
 /// is not flat.
 #[derive(Clone, Copy, Debug)]
 pub struct BoardPose {
+    /// The board's orientation in the camera frame.
     pub rotation: Rotation3<f64>,
+    /// Where the board frame's origin lies in the camera frame (metres).
     pub translation: Vector3<f64>,
+    /// Curvature of the board about its y axis (1/m; 0: flat).
     pub bend: f64,
 }
 
@@ -117,6 +124,7 @@ pub struct ViewRender {
     pub blur_px: f64,
     /// Gaussian noise in 8-bit levels.
     pub noise_levels: f64,
+    /// Seed of the sensor noise.
     pub seed: u64,
     /// 8-bit level of a white print.
     pub white: f64,
@@ -141,13 +149,18 @@ impl Default for ViewRender {
 /// a `width x height` image through `window`: computed once, shared by all views of a set
 /// (inverting the distortion is the expensive part of rendering).
 pub struct RayGrid {
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// Sub-samples per pixel side; each pixel holds `supersample^2` rays.
     pub supersample: usize,
     rays: Vec<[f32; 2]>,
 }
 
 impl RayGrid {
+    /// Computes the rays of every sub-sample of a `width x height` image that sits at `window` on
+    /// `camera`'s sensor, undoing the lens distortion (`supersample` below 1 is taken as 1).
     pub fn new(
         camera: &Camera,
         window: SensorWindow,
@@ -464,7 +477,9 @@ pub fn calibration_poses(
 pub struct ViewSet {
     /// File-style names and images.
     pub images: Vec<(String, GrayImage)>,
+    /// Where the images sit on the sensor (the whole sensor binned by the rendering step).
     pub window: SensorWindow,
+    /// Image size in pixels, `(width, height)`.
     pub size: (usize, usize),
 }
 
