@@ -169,6 +169,39 @@ fn validate_gltf(gltf: &Path) -> Option<Value> {
     Some(serde_json::from_str(&text).unwrap())
 }
 
+/// Blender's own glTF importer (File > Import > glTF 2.0, run headless by
+/// `tests/scripts/open_gltf_blender.py`): what it built from `gltf`, or `None` without Blender
+/// (CI installs it: there its absence fails the test).
+fn open_in_blender(gltf: &Path) -> Option<Value> {
+    let found = Command::new("blender")
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !found {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI: blender is not installed"
+        );
+        return None;
+    }
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/scripts/open_gltf_blender.py");
+    let out = Command::new("blender")
+        .args(["--background", "--factory-startup", "--python"])
+        .arg(script)
+        .arg("--")
+        .arg(gltf)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text
+        .lines()
+        .find_map(|l| l.strip_prefix("BLENDER_JSON "))
+        .unwrap_or_else(|| panic!("Blender printed no result: {text}"));
+    let result: Value = serde_json::from_str(line).unwrap();
+    assert!(out.status.success(), "Blender import failed: {result}");
+    Some(result)
+}
+
 /// three.js (the npm package `three`, installed beside the validator) in headless Chromium:
 /// its own GLTFLoader opens `gltf` and renders it; what it made of the material, or `None`
 /// without Chromium or the package.
@@ -314,6 +347,42 @@ fn every_output_is_written_and_independent_decoders_accept_it() {
             );
         }
         None => eprintln!("SKIPPED three.js check: no chromium or npm package three"),
+    }
+    if let Some(blender) = open_in_blender(&derived.join("material.gltf")) {
+        eprintln!("Blender: {blender}");
+        assert_eq!(
+            blender["import"],
+            serde_json::json!(["FINISHED"]),
+            "{blender}"
+        );
+        assert_eq!(
+            (blender["meshes"].as_u64(), blender["materials"].as_u64()),
+            (Some(1), Some(1))
+        );
+        // The quad is the tile's physical size, in metres, lying in Blender's ground plane.
+        let mm = report["pixel_mm"].as_f64().unwrap();
+        let size = blender["dimensions_m"].as_array().unwrap();
+        assert!(
+            (size[0].as_f64().unwrap() - 128.0 * mm / 1000.0).abs() < 1e-5,
+            "{blender}"
+        );
+        // Every texture wired into the Principled BSDF, decoded, with the colour space the
+        // glTF specification gives its slot.
+        let inputs = &blender["material"]["inputs"];
+        for (input, colour_space) in [
+            ("Base Color", "sRGB"),
+            ("Normal", "Non-Color"),
+            ("Roughness", "Non-Color"),
+        ] {
+            let image = &inputs[input]["image"];
+            assert_eq!(
+                image["size"],
+                serde_json::json!([128, 128]),
+                "{input}: {blender}"
+            );
+            assert_eq!(image["colorspace"], colour_space, "{input}: {blender}");
+            assert_eq!(image["pixels"], 128 * 128 * 4, "{input}: {blender}");
+        }
     }
 }
 
