@@ -90,6 +90,49 @@ pub struct CameraSettings {
     pub aperture: Option<f64>,
 }
 
+impl CameraSettings {
+    /// Whether frames taken with `other` expose like frames taken with these settings: the
+    /// ISO, shutter time and aperture agree wherever both are known (times and f-numbers
+    /// within 1 %, the rounding of the values cameras report).
+    pub fn same_exposure(&self, other: &CameraSettings) -> bool {
+        let close = |a: f64, b: f64| (a / b - 1.0).abs() <= 0.01;
+        let agree = |a: Option<f64>, b: Option<f64>, same: &dyn Fn(f64, f64) -> bool| match (a, b) {
+            (Some(a), Some(b)) => same(a, b),
+            _ => true,
+        };
+        agree(
+            self.iso.map(f64::from),
+            other.iso.map(f64::from),
+            &|a, b| a == b,
+        ) && agree(self.shutter_s, other.shutter_s, &close)
+            && agree(self.aperture, other.aperture, &close)
+    }
+
+    /// The exposure in words, e.g. `ISO 100, 1/60 s, f/8` (`exposure not reported` when
+    /// the camera gave none of it).
+    pub fn exposure_text(&self) -> String {
+        let mut parts = Vec::new();
+        if let Some(iso) = self.iso {
+            parts.push(format!("ISO {iso}"));
+        }
+        if let Some(t) = self.shutter_s {
+            parts.push(if t < 1.0 {
+                format!("1/{} s", (1.0 / t).round())
+            } else {
+                format!("{t} s")
+            });
+        }
+        if let Some(f) = self.aperture {
+            parts.push(format!("f/{f}"));
+        }
+        if parts.is_empty() {
+            "exposure not reported".into()
+        } else {
+            parts.join(", ")
+        }
+    }
+}
+
 /// Where a synthetic set's ground truth and render specification lie, both inside the set.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

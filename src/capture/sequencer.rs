@@ -166,14 +166,15 @@ pub fn run_capture(
     progress: &dyn Progress,
 ) -> Result<CaptureReport> {
     let total = Instant::now();
-    let (mut writer, dropped) = open_set(dir, rig, camera, options)?;
+    // Read before the set is opened: a new set records them, a resumed one must match them.
+    let camera_settings = camera.settings()?;
+    let (mut writer, dropped) = open_set(dir, rig, camera, &camera_settings, options)?;
     let controller = lights.lock().name();
     let setup = prepare_controller(lights, rig.leds.len(), options.light_timeout_ms);
     let (firmware, timeout_ms) = match setup {
         Ok(v) => v,
         Err(e) => return Err(stopped(&writer, "setting up the LED controller", e, lights)),
     };
-    let camera_settings = camera.settings()?;
     let keepalive = Keepalive::start(
         lights.clone(),
         Duration::from_millis(timeout_ms as u64 / 3),
@@ -261,6 +262,7 @@ fn open_set(
     dir: &Path,
     rig: &Rig,
     camera: &dyn Camera,
+    settings: &CameraSettings,
     options: &CaptureOptions,
 ) -> Result<(CaptureSetWriter, Vec<DroppedFrame>)> {
     let image = camera.image_info(rig);
@@ -291,6 +293,15 @@ fn open_set(
                 },
             });
         }
+        if !set.manifest.camera.same_exposure(settings) {
+            return Err(Error::SetOccupied {
+                dir: dir.to_path_buf(),
+                state: Occupied::OtherFrames {
+                    set_frames: set.manifest.camera.exposure_text(),
+                    camera_frames: settings.exposure_text(),
+                },
+            });
+        }
         remove_scratch_files(dir);
         return CaptureSetWriter::resume(dir);
     }
@@ -314,7 +325,7 @@ fn open_set(
     // A new set: the folder must be new, empty or psscan's own (an old set, with --force);
     // the old set is removed as a whole, never mixed with the new one.
     crate::fsutil::claim_dir(dir, options.force, &[], &[])?;
-    let mut writer = CaptureSetWriter::create(dir, rig, image, CameraSettings::default(), true)?;
+    let mut writer = CaptureSetWriter::create(dir, rig, image, settings.clone(), true)?;
     if let Some(info) = &options.synthetic {
         writer.set_synthetic(info.clone())?;
     }

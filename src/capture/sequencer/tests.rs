@@ -51,6 +51,122 @@ impl Camera for FailOnce<'_> {
     }
 }
 
+/// A camera that reports `settings` (a DSLR tethered over gphoto2 reports its ISO, shutter
+/// and aperture) and otherwise shoots as `inner`; at its `stop_at`-th shot it raises `stop`
+/// (Ctrl-C while the shutter is open).
+struct Reporting<'a> {
+    inner: SimCamera<'a>,
+    settings: CameraSettings,
+    shots: usize,
+    stop_at: usize,
+    stop: Interrupt,
+}
+
+impl Camera for Reporting<'_> {
+    fn name(&self) -> String {
+        self.inner.name()
+    }
+    fn settings(&mut self) -> Result<CameraSettings> {
+        Ok(self.settings.clone())
+    }
+    fn image_info(&self, rig: &Rig) -> super::super::ImageInfo {
+        self.inner.image_info(rig)
+    }
+    fn max_shot_time(&self) -> Duration {
+        self.inner.max_shot_time()
+    }
+    fn capture(&mut self, dest: &Path, interrupt: &Interrupt) -> Result<Shot> {
+        self.shots += 1;
+        if self.shots == self.stop_at {
+            self.stop.set();
+        }
+        self.inner.capture(dest, interrupt)
+    }
+}
+
+#[test]
+fn the_manifest_records_the_cameras_settings_and_resume_needs_the_same() {
+    let rig = Rig::default_rig();
+    let dir = tempfile::tempdir().unwrap();
+    let mock = MockLights::new(10);
+    let probe = mock.probe();
+    let lights = SharedLights::new(Box::new(mock));
+    let settings = CameraSettings {
+        model: "Nikon D800E".into(),
+        iso: Some(100),
+        shutter_s: Some(1.0 / 60.0),
+        aperture: Some(8.0),
+    };
+    let interrupt = Interrupt::new();
+    let mut camera = Reporting {
+        inner: SimCamera::new(&rig, &spec(), Box::new(probe.clone())).unwrap(),
+        settings: settings.clone(),
+        shots: 0,
+        stop_at: 4,
+        stop: interrupt.clone(),
+    };
+    let stopped = run_capture(
+        dir.path(),
+        &rig,
+        &lights,
+        &mut camera,
+        &options(),
+        &interrupt,
+        &Silent,
+    );
+    assert!(stopped.is_err());
+    let set = CaptureSet::open(dir.path(), None).unwrap();
+    assert_eq!(set.manifest.camera, settings);
+    // Resuming with the ISO changed would mix exposures in one set: refused, both named.
+    camera.settings.iso = Some(400);
+    let resume = CaptureOptions {
+        resume: true,
+        ..options()
+    };
+    let err = run_capture(
+        dir.path(),
+        &rig,
+        &lights,
+        &mut camera,
+        &resume,
+        &Interrupt::new(),
+        &Silent,
+    )
+    .unwrap_err();
+    let text = err.to_string();
+    assert!(
+        matches!(
+            err,
+            Error::SetOccupied {
+                state: Occupied::OtherFrames { .. },
+                ..
+            }
+        ),
+        "{text}"
+    );
+    assert!(
+        text.contains("ISO 100, 1/60 s, f/8") && text.contains("ISO 400"),
+        "{text}"
+    );
+    // With the settings it was started with, it completes.
+    camera.settings.iso = Some(100);
+    let report = run_capture(
+        dir.path(),
+        &rig,
+        &lights,
+        &mut camera,
+        &resume,
+        &Interrupt::new(),
+        &Silent,
+    )
+    .unwrap();
+    assert_eq!(report.shot + report.kept, 11);
+    assert_eq!(
+        CaptureSet::open(dir.path(), None).unwrap().manifest.camera,
+        settings
+    );
+}
+
 #[test]
 fn a_mock_session_shoots_dark_then_each_led_and_checks_state() {
     let rig = Rig::default_rig();
