@@ -13,6 +13,7 @@ pub struct Anchor {
     pub lights: usize,
     /// The method, as the source names it.
     pub method: &'static str,
+    /// The published mean angular error, in degrees.
     pub mean_deg: f64,
 }
 

@@ -21,13 +21,18 @@ use crate::solve::{PixelStatus, SolveResult};
 /// Mean, median, 95th percentile and maximum of a set of values.
 #[derive(Clone, Copy, Debug, Default, Serialize, PartialEq)]
 pub struct Stats {
+    /// Arithmetic mean.
     pub mean: f64,
+    /// Median (the value at sorted position `round((n - 1) / 2)`).
     pub median: f64,
+    /// 95th percentile (the value at sorted position `round(0.95 (n - 1))`).
     pub p95: f64,
+    /// Largest value.
     pub max: f64,
 }
 
 impl Stats {
+    /// The statistics of `values` (reordered in place by the selection); all zero when empty.
     pub fn of(values: &mut [f64]) -> Stats {
         if values.is_empty() {
             return Stats::default();
@@ -94,10 +99,12 @@ fn order_statistics<T: Copy + Default, const K: usize>(
     out
 }
 
+/// How a solve compares with a synthetic set's ground truth, over the pixels it solved.
 #[derive(Clone, Debug, Serialize)]
 pub struct TruthComparison {
     /// Solved pixels compared.
     pub pixels: usize,
+    /// Angle between solved and true normals, in degrees, over solved pixels.
     pub normal_error_deg: Stats,
     /// `|albedo - true| / true`, per channel, over solved pixels.
     pub albedo_rel_error: Stats,
@@ -136,6 +143,7 @@ pub fn solved_normal_errors_deg(result: &SolveResult, truth: &[Plane; 3]) -> Vec
         .collect()
 }
 
+/// Compares a solve with ground-truth normal and albedo maps over the pixels it solved.
 pub fn compare(result: &SolveResult, normal: &[Plane; 3], albedo: &[Plane; 3]) -> TruthComparison {
     let mut angles = solved_normal_errors_deg(result, normal);
     compare_with_errors(result, &mut angles, albedo)

@@ -17,12 +17,15 @@ use crate::solve::{self, Estimator, LightSource, NoiseModel, SolveInput, SolveOp
 pub struct EvalSet {
     /// The set's name in tables (its folder name).
     pub name: String,
+    /// The images, one linear RGB frame per light, in the order of `directions`.
     pub frames: Frames,
     /// Unit directions toward the lights, world frame, one per frame.
     pub directions: Vec<[f64; 3]>,
     /// RGB intensities of the lights, one per frame.
     pub intensities: Vec<[f64; 3]>,
+    /// The sensor noise model the solve weighs residuals with.
     pub noise: NoiseModel,
+    /// The object's pixels, the only ones solved and scored; `None` for every pixel.
     pub mask: Option<Mask>,
     /// Ground-truth unit normals (zero where unknown).
     pub truth: [Plane; 3],
@@ -34,6 +37,7 @@ pub struct EvalOptions {
     /// Light counts; `None` is every light of the set. Counts at or above a set's total are
     /// evaluated once, as every light.
     pub lights: Vec<Option<usize>>,
+    /// The estimators to run, each on every light subset.
     pub estimators: Vec<Estimator>,
     /// The solve options every estimator shares (the estimator field is replaced).
     pub solve: SolveOptions,
@@ -42,23 +46,29 @@ pub struct EvalOptions {
 /// One estimator on one light subset of one set.
 #[derive(Clone, Debug, Serialize)]
 pub struct Row {
+    /// The set's name (its [`EvalSet::name`]).
     pub set: String,
+    /// How many lights the subset has (chosen spread out over the set's directions).
     pub lights: usize,
     /// An estimator name (`ls`, `adaptive`, ...) or `trimmed` (the anchor psscan computes).
     pub estimator: String,
     /// Over every mask pixel with a ground-truth normal (unsolved pixels count with (0, 0, 1)),
     /// as benchmark tables report it.
     pub error_deg: Stats,
+    /// Mask pixels with a ground-truth normal, the count `error_deg` is over.
     pub mask_pixels: usize,
+    /// Of those, the pixels solved (for `trimmed`, those it found a normal for).
     pub solved: usize,
     /// Pixels the robust fit ran on (estimators only).
     pub escalated: Option<usize>,
+    /// Wall-clock time of the solve (for `trimmed`, of its normals), in seconds.
     pub seconds: f64,
 }
 
 /// The whole evaluation.
 #[derive(Clone, Debug, Serialize)]
 pub struct EvalReport {
+    /// One row per estimator (and `trimmed`) per set and light count, in evaluation order.
     pub rows: Vec<Row>,
     /// Published figures for the (set, light count) pairs evaluated.
     pub anchors: Vec<Anchor>,

@@ -8,6 +8,7 @@ use rayon::prelude::*;
 use crate::plane::Plane;
 use crate::solve::{PixelStatus, SolveResult};
 
+/// Which way the stored normal map's Y axis points, as engines disagree on it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum NormalConvention {
@@ -62,6 +63,7 @@ pub fn linear_to_srgb(v: f32) -> f32 {
     }
 }
 
+/// sRGB-encoded to linear (IEC 61966-2-1), the inverse of [`linear_to_srgb`]; not clamped.
 #[inline]
 pub fn srgb_to_linear(v: f32) -> f32 {
     if v <= 0.040_45 {

@@ -26,8 +26,12 @@ pub use report::Report;
 /// Which maps to write and how.
 #[derive(Clone, Debug, Serialize)]
 pub struct MapOptions {
+    /// The Y convention of the normal maps written (PNG and EXR).
     pub normal_convention: NormalConvention,
+    /// Write the 16-bit PNG maps (`normal.png`, `albedo.png`).
     pub png: bool,
+    /// Write the float EXR maps (`normal.exr`, `albedo.exr`); `confidence.exr` is written either
+    /// way.
     pub exr: bool,
     /// Camera RGB to linear sRGB for the display output (`albedo.png`); the solve's data
     /// outputs (EXR) stay in the camera's white-balanced RGB. `None`: the channels are sRGB's.
@@ -54,17 +58,23 @@ impl Default for MapOptions {
 /// Paths of the files written (absent when not requested).
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct WrittenMaps {
+    /// `normal.png`, 16-bit RGB.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub normal_png: Option<PathBuf>,
+    /// `normal.exr`, float RGB.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub normal_exr: Option<PathBuf>,
+    /// `albedo.png`, 16-bit sRGB.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub albedo_png: Option<PathBuf>,
+    /// `albedo.exr`, linear white-balanced camera RGB.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub albedo_exr: Option<PathBuf>,
+    /// `confidence.exr`, always written.
     pub confidence_exr: PathBuf,
 }
 
+/// The solve report's file name; its presence marks a folder holding a finished solve.
 pub const REPORT_FILE: &str = "report.json";
 
 /// Refuses to write into a folder that already holds a finished solve, unless `force`.

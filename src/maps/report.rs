@@ -18,13 +18,21 @@ use crate::timing::{StageClock, StageTime};
 /// percent), so the frames hold something the Lambertian model and the noise model do not.
 pub const MODEL_TEST_WARN_SHARE: f64 = 0.05;
 
+/// The figures of one solve as `report.json` holds them: what was solved with which options, how
+/// the pixels came out, where the time went and which files were written.
 #[derive(Clone, Debug, Serialize)]
 pub struct Report {
+    /// The psscan version that made the solve.
     pub psscan_version: &'static str,
+    /// Where the solved set is (its folder).
     pub capture: PathBuf,
+    /// The rig's name (for a DiLiGenT set, a description of its light layout).
     pub rig: String,
+    /// Width of the maps in pixels.
     pub width: usize,
+    /// Height of the maps in pixels.
     pub height: usize,
+    /// The options the solve ran with.
     pub options: SolveOptions,
     /// How the maps were written: the normal convention (`opengl`: +Y up, `directx`: +Y
     /// down), which formats, and the display colour matrix of `albedo.png`.
@@ -38,6 +46,8 @@ pub struct Report {
     pub escalated: usize,
     /// The adaptive estimator found sheen and fitted the sheen model everywhere.
     pub sheen_everywhere: bool,
+    /// Mean of the luminance fit's RMS residual over the solved pixels, in albedo units (0 when
+    /// none was solved).
     pub residual_mean: f64,
     /// Mean predicted normal error from sensor noise over the solved pixels; `null` where it
     /// was not computed (the streaming kernel, `predict_error` off, or data without a noise
@@ -65,6 +75,7 @@ pub struct Report {
     /// time in proportion to their busy time, which they also give.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub stages: Vec<StageTime>,
+    /// The map files written.
     pub outputs: WrittenMaps,
     /// How the frames were decoded and prepared (capture sets).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -109,6 +120,7 @@ pub struct LightRecord {
     /// The light's frame file, relative to the capture set.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub frame: Option<String>,
+    /// SHA-256 of the frame file in hex, as the capture set's manifest records it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sha256: Option<String>,
 }
@@ -134,10 +146,13 @@ impl LightRecord {
 /// Counts of values in bins of equal width from 0.
 #[derive(Clone, Debug, Serialize)]
 pub struct Histogram {
+    /// Width of each bin, in degrees (rounded up to one significant digit).
     pub bin_deg: f64,
+    /// How many values fall in each bin: bin `k` counts those in `[k, k + 1)` bin widths.
     pub counts: Vec<usize>,
     /// Values above the last bin.
     pub above: usize,
+    /// Finite values counted (NaN and infinities are left out).
     pub pixels: usize,
 }
 
@@ -179,6 +194,7 @@ impl Histogram {
 /// A mean; NaN (JSON `null`, "n/a" in the CLI) when it could not be computed.
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct Mean {
+    /// The mean, in the unit of what was averaged; NaN when unknown.
     pub mean: f64,
 }
 
@@ -186,6 +202,7 @@ impl Mean {
     /// Not computed.
     pub const UNKNOWN: Mean = Mean { mean: f64::NAN };
 
+    /// Whether the mean was computed (it is finite).
     pub fn is_known(&self) -> bool {
         self.mean.is_finite()
     }
@@ -248,6 +265,9 @@ fn model_test_warning(
 }
 
 impl Report {
+    /// A report of `result` as solved from the set at `capture` with `rig`: pixel and fit counts,
+    /// residual and predicted-error means, and the model-test warning; the caller fills in the rest
+    /// (maps, truth, region, timings, provenance).
     pub fn new(
         capture: &Path,
         rig: &str,
@@ -354,10 +374,12 @@ impl Report {
         self.timings_s.get("total").copied().unwrap_or(0.0)
     }
 
+    /// The report as pretty-printed JSON.
     pub fn to_json(&self) -> String {
         serde_json::to_string_pretty(self).expect("a report always serialises")
     }
 
+    /// Writes the report's JSON to `path`, atomically.
     pub fn write(&self, path: &Path) -> Result<()> {
         write_atomic(path, self.to_json().as_bytes())
     }

@@ -26,15 +26,21 @@ pub use super::guard::MAX_SAMPLES;
 /// What a RAW file says about how it was shot.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct RawMeta {
+    /// Camera maker, as the file names it (rawler's cleaned-up name where it has one).
     pub make: String,
+    /// Camera model, as the file names it (rawler's cleaned-up name where it has one).
     pub model: String,
-    /// Size of the decoded mosaic (the sensor's active area).
+    /// Width of the decoded mosaic in pixels (the sensor's active area).
     pub width: usize,
+    /// Height of the decoded mosaic in pixels.
     pub height: usize,
+    /// ISO sensitivity from the EXIF data; `None` when the file records none.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub iso: Option<u32>,
+    /// Exposure time in seconds; `None` when the file records none.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub shutter_s: Option<f64>,
+    /// Aperture as an f-number (8.0 for f/8); `None` when the file records none.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub aperture: Option<f64>,
 }
@@ -55,7 +61,9 @@ impl RawMeta {
 /// One decoded RAW frame.
 #[derive(Clone, Debug)]
 pub struct DecodedRaw {
+    /// The frame's CFA samples and levels.
     pub mosaic: Mosaic,
+    /// What the file says about how it was shot.
     pub meta: RawMeta,
     /// White-balanced camera RGB to linear sRGB, from the file's colour matrix (D65 or
     /// daylight preferred), when it has a usable one.

@@ -28,6 +28,7 @@ pub enum Encoding {
 }
 
 impl Encoding {
+    /// The encoding a manifest names (`dn16`, `raw`); `None` for any other name.
     pub fn parse(name: &str) -> Option<Encoding> {
         match name {
             "dn16" => Some(Encoding::Dn16),
@@ -36,6 +37,7 @@ impl Encoding {
         }
     }
 
+    /// The encoding's name as manifests write it (`dn16`, `raw`).
     pub fn name(self) -> &'static str {
         match self {
             Encoding::Dn16 => "dn16",
@@ -47,6 +49,7 @@ impl Encoding {
 /// How to develop a set's frames.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 pub struct DevelopOptions {
+    /// How CFA samples become RGB pixels (RAW frames; dn16 frames are already RGB).
     pub resolution: Resolution,
     /// Subtract the set's all-off frame, when it has one.
     pub subtract_dark: bool,
@@ -64,6 +67,7 @@ impl Default for DevelopOptions {
 /// One frame, decoded and linearised, not yet developed.
 #[derive(Clone, Debug)]
 pub struct DecodedFrame {
+    /// The frame's linear values: RGB planes or CFA samples.
     pub data: FrameData,
     /// The camera's metadata (RAW frames).
     pub meta: Option<RawMeta>,
@@ -373,10 +377,13 @@ fn median_and_sigma(values: &[f32]) -> (f32, f32) {
 /// How the frames of a solve were decoded and prepared, for the report.
 #[derive(Clone, Debug, Serialize)]
 pub struct DecodeInfo {
+    /// How the frames are stored (`dn16`, `raw`).
     pub encoding: String,
+    /// How CFA samples became RGB pixels (RAW sets; dn16 frames are RGB as stored).
     pub resolution: Resolution,
     /// How RGB pixels were made from the stored frames.
     pub method: String,
+    /// The CFA pattern of the first light frame (RAW sets), e.g. "RGGB".
     #[serde(skip_serializing_if = "Option::is_none")]
     pub cfa_pattern: Option<String>,
     /// Levels of the first light frame (RAW: the mean black level of its CFA sites).
@@ -386,6 +393,7 @@ pub struct DecodeInfo {
     pub camera: Option<RawMeta>,
     /// What was done with the all-off frame.
     pub dark_frame: String,
+    /// Whether the all-off frame was subtracted from every light frame.
     pub dark_subtracted: bool,
     /// The noise model's per-channel variance scale (see `NoiseModel::channel_scale`).
     pub noise_channel_scale: [f64; 3],

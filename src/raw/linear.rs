@@ -13,8 +13,11 @@ use crate::rig::Sensor;
 /// Raw digital numbers, RGB interleaved, row-major.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DnImage {
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
+    /// The samples in DN, `width * height * 3` of them: R, G, B of each pixel, row after row.
     pub data: Vec<u16>,
 }
 
@@ -22,11 +25,14 @@ pub struct DnImage {
 /// above `white` the value is clipped.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Levels {
+    /// The DN a pixel reads with no light: linear 0.
     pub black: f64,
+    /// The DN at which the sensor clips: linear 1.0.
     pub white: f64,
 }
 
 impl Levels {
+    /// The levels a rig's sensor description gives.
     pub fn from_sensor(sensor: &Sensor) -> Self {
         Levels {
             black: sensor.black_level,

@@ -28,9 +28,11 @@ use serde::{Deserialize, Serialize};
 use crate::error::{Error, Result};
 use crate::plane::{LightFrame, Mask, Plane, RgbPlanes, SensorWindow};
 
-/// Colour channel indices, as in `RgbPlanes`.
+/// Index of the red channel (the channel indices are those of `RgbPlanes`).
 pub const RED: u8 = 0;
+/// Index of the green channel.
 pub const GREEN: u8 = 1;
+/// Index of the blue channel.
 pub const BLUE: u8 = 2;
 
 /// A sample this close to the white level (as a fraction of white - black) counts as saturated.
@@ -40,7 +42,8 @@ pub const SATURATION_MARGIN: f32 = 0.01;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Resolution {
-    /// Bilinear demosaic: one RGB pixel per CFA sample.
+    /// One RGB pixel per CFA sample, by the shading-preserving demosaic: each pixel keeps its
+    /// own sample, its missing channels scaled from it by colour ratios from the whole stack.
     #[default]
     Full,
     /// 2x2 CFA binning: one RGB pixel per 2x2 cell, half the width and height.
@@ -82,6 +85,7 @@ impl Resolution {
         }
     }
 
+    /// How this resolution turns CFA samples into RGB pixels, in words (for reports).
     pub fn method(self) -> &'static str {
         match self {
             Resolution::Half => "2x2 CFA binning (R, mean of the two G, B of each cell)",
@@ -99,13 +103,16 @@ impl Resolution {
 /// The CFA samples of one frame (the sensor's active area), with their levels.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Mosaic {
+    /// Width in CFA samples.
     pub width: usize,
+    /// Height in CFA samples.
     pub height: usize,
     /// Channel of the sample at `(x, y)`: `pattern[y % 2][x % 2]`, a Bayer pattern (one R, one
     /// B and two G on a diagonal).
     pub pattern: [[u8; 2]; 2],
     /// Black level of each CFA site, indexed like `pattern`.
     pub black: [[f32; 2]; 2],
+    /// The white level: the raw value (DN) of a full-scale sample.
     pub white: f32,
     /// Row-major samples, `width * height`.
     pub samples: Vec<u16>,
@@ -231,10 +238,16 @@ impl Mosaic {
 /// A mosaic's samples in linear units, with their saturation flags.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LinearMosaic {
+    /// Width in CFA samples.
     pub width: usize,
+    /// Height in CFA samples.
     pub height: usize,
+    /// The CFA pattern, as [`Mosaic::pattern`].
     pub pattern: [[u8; 2]; 2],
+    /// Linear samples, row-major: 0 at the site's black level, 1.0 at the white level.
     pub values: Vec<f32>,
+    /// Per sample, whether the raw value was at or near the white level (see
+    /// [`Mosaic::saturation_threshold`]).
     pub saturated: Vec<bool>,
 }
 

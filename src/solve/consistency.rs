@@ -41,7 +41,7 @@ const MIN_BLOCK_SAMPLES: usize = 64;
 ///
 /// Against the other frames: in a judged block each frame's scale estimates the same spread,
 /// the noise (the model holds there, see [`MODEL_GATE`]), to within the MAD's sampling error
-/// (under 15 % at [`MIN_BLOCK_SAMPLES`]). A frame whose damage covers over half of a block
+/// (under 15 % at `MIN_BLOCK_SAMPLES`, 64). A frame whose damage covers over half of a block
 /// has a median residual of the damage's own size; the damage also leaks into the other
 /// frames' deleted fits, by the cross leverage `a_j' A^-1 a_k`, which with ten or more lights
 /// is well under a third. So a damaged block stands at least three times the median frame's
@@ -108,9 +108,9 @@ impl Consistency {
 type Residual = (usize, usize, f32);
 
 /// Measures how well each frame agrees with a Lambertian fit of the others (see the module
-/// documentation), on about [`TARGET_SAMPLES`] pixels inside `mask`. Sets with fewer than five
-/// lights are not judged (every frame's figures are zero): the other frames' fit then has
-/// at most one degree of freedom to spare.
+/// documentation), on about `TARGET_SAMPLES` (65 536) pixels inside `mask`, a regular
+/// subsample. Sets with fewer than five lights are not judged (every frame's figures are
+/// zero): the other frames' fit then has at most one degree of freedom to spare.
 pub fn frame_consistency(
     frames: &Frames,
     lights: &LightSource,

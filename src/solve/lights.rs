@@ -28,24 +28,37 @@ pub enum LightSource<'a> {
     /// Distant lights given directly (photometric-stereo benchmarks such as DiLiGenT): unit
     /// directions in the world frame and RGB intensities, one per light.
     Directions {
+        /// Direction toward each light, world frame (normalised before use).
         directions: &'a [[f64; 3]],
+        /// RGB intensity of each light, in the order of `directions`; every channel positive.
         intensities: &'a [[f64; 3]],
     },
     /// A calibrated rig (LED positions and powers fitted to the white sheet) and, per light,
     /// the sheet's measured intensity over the fitted model's on the table: what the point
     /// model misses (beam asymmetry, reflections in the rig) corrects the falloff.
-    Calibrated { rig: &'a Rig, gains: &'a [GainGrid] },
+    Calibrated {
+        /// The rig, its LED positions and powers as fitted to the white sheet.
+        rig: &'a Rig,
+        /// One intensity correction per LED, in the rig's LED order.
+        gains: &'a [GainGrid],
+    },
 }
 
 /// A light's intensity correction over the table: a regular grid of factors in world x, y
 /// (metres), bilinear between nodes, clamped at the edges.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct GainGrid {
+    /// World x of the first grid node, in metres.
     pub x0: f64,
+    /// World y of the first grid node, in metres.
     pub y0: f64,
+    /// Node spacing along world x, in metres.
     pub dx: f64,
+    /// Node spacing along world y, in metres.
     pub dy: f64,
+    /// Number of nodes along x.
     pub nx: usize,
+    /// Number of nodes along y.
     pub ny: usize,
     /// Row-major, `nx * ny` factors.
     pub values: Vec<f64>,
@@ -218,14 +231,17 @@ impl<'a> Illumination<'a> {
         })
     }
 
+    /// The number of lights.
     pub fn len(&self) -> usize {
         self.rgb_scale.len()
     }
 
+    /// Whether there are no lights.
     pub fn is_empty(&self) -> bool {
         self.rgb_scale.is_empty()
     }
 
+    /// How the lights are modelled: the model asked for with a rig, `Distant` for bare directions.
     pub fn model(&self) -> LightModel {
         self.model
     }

@@ -59,8 +59,10 @@ pub enum PixelFit {
 }
 
 impl PixelFit {
+    /// Every fit, in the order of their codes.
     pub const ALL: [PixelFit; 3] = [PixelFit::LeastSquares, PixelFit::Robust, PixelFit::Sheen];
 
+    /// The fit's name in reports and JSON (`least_squares`, `robust`, `sheen`).
     pub fn name(self) -> &'static str {
         match self {
             PixelFit::LeastSquares => "least_squares",
@@ -72,9 +74,11 @@ impl PixelFit {
 
 /// What the solve needs besides the options.
 pub struct SolveInput<'a> {
+    /// The linear frames, one per light, in the order of the light source's lights.
     pub frames: &'a Frames,
     /// The lights: a rig (near or distant model) or bare distant directions.
     pub lights: LightSource<'a>,
+    /// The sensor's noise, for dark thresholds, the model test and the predicted error.
     pub noise: NoiseModel,
     /// Exposure of these frames relative to the one the rig's LED powers were measured at.
     pub exposure: f64,
@@ -88,6 +92,7 @@ pub struct SolveInput<'a> {
 #[serde(rename_all = "snake_case")]
 #[repr(u8)]
 pub enum PixelStatus {
+    /// A normal and albedo were solved from three or more usable lights.
     Solved = 0,
     /// Not part of the requested mask.
     OutsideMask = 1,
@@ -102,6 +107,7 @@ pub enum PixelStatus {
 }
 
 impl PixelStatus {
+    /// Every status, in the order of their codes.
     pub const ALL: [PixelStatus; 6] = [
         PixelStatus::Solved,
         PixelStatus::OutsideMask,
@@ -111,6 +117,7 @@ impl PixelStatus {
         PixelStatus::Degenerate,
     ];
 
+    /// The status's name in reports and JSON (`solved`, `outside_mask`, `dark`, ...).
     pub fn name(self) -> &'static str {
         match self {
             PixelStatus::Solved => "solved",
@@ -127,7 +134,9 @@ impl PixelStatus {
 /// not `Solved` the normal is (0, 0, 1), the albedo 0 and the error figures 0.
 #[derive(Clone, Debug)]
 pub struct SolveResult {
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
     /// Unit normal in the world frame (x right, y toward the top of the image, z up).
     pub normal: [Plane; 3],
@@ -139,7 +148,10 @@ pub struct SolveResult {
     pub predicted_error_deg: Plane,
     /// Condition number (Frobenius estimate) of the pixel's light matrix.
     pub condition: Plane,
+    /// Lights in each pixel's final fit: the usable ones (not dark, saturated or non-finite),
+    /// less any a robust fit rejected.
     pub lights_used: Vec<u8>,
+    /// Why each pixel has or has not a solution.
     pub status: Vec<PixelStatus>,
     /// Which fit solved each pixel; `LeastSquares` where not solved.
     pub fit: Vec<PixelFit>,
@@ -221,6 +233,7 @@ impl SolveResult {
             .count()
     }
 
+    /// Pixels with `status`.
     pub fn count(&self, status: PixelStatus) -> usize {
         self.status.iter().filter(|&&s| s == status).count()
     }

@@ -67,12 +67,14 @@ pub enum Estimator {
 }
 
 impl Estimator {
+    /// Every estimator: least squares, robust, adaptive.
     pub const ALL: [Estimator; 3] = [
         Estimator::LeastSquares,
         Estimator::Robust,
         Estimator::Adaptive,
     ];
 
+    /// The estimator's name on the command line and in reports (`ls`, `robust`, `adaptive`).
     pub fn name(self) -> &'static str {
         match self {
             Estimator::LeastSquares => "ls",
@@ -153,6 +155,7 @@ pub struct Streaming {
     /// Share light coefficients across tiles (interpolated from their corners) within this
     /// tolerance; `None`: exact coefficients per pixel.
     pub tiles: Option<TileTolerance>,
+    /// Least squares alone, or screened with the exact kernel behind it.
     pub estimator: StreamingEstimator,
 }
 
@@ -164,7 +167,9 @@ pub enum KernelChoice {
     /// The exact per-pixel kernel in f64: every estimator and method (the reference the
     /// streaming kernel is held to).
     Exact {
+        /// How each pixel's least-squares problem is solved.
         method: Method,
+        /// Which fit runs at each pixel: least squares, robust, or adaptive.
         estimator: Estimator,
     },
     /// The streaming kernel (`fast.rs`): least squares in chunks of pixels; see [`Streaming`].
@@ -302,6 +307,8 @@ impl KernelChoice {
 /// Everything that decides how a set is solved besides its data.
 #[derive(Clone, Debug)]
 pub struct SolveOptions {
+    /// How the LEDs are modelled: near point sources, or distant lights (a rig's only; bare
+    /// directions are distant).
     pub light_model: LightModel,
     /// The kernel, estimator and method (one value: see [`KernelChoice`]).
     pub kernel: KernelChoice,

@@ -50,6 +50,8 @@ impl Default for SheenModel {
 }
 
 impl SheenModel {
+    /// Checks the lobe is physical: every `f0` in [0, 1), `alpha` positive and `amplitude` not
+    /// negative, all finite; the error names the values.
     pub fn validate(&self) -> Result<()> {
         let f0_ok = self.f0.iter().all(|f| (0.0..1.0).contains(f));
         let alpha_ok = self.alpha > 0.0 && self.alpha.is_finite();

@@ -76,9 +76,11 @@ fn solve_with(c: &[f64], raw: &[Option<f64>]) -> Option<Vector3<f64>> {
 
 /// Exact coefficients at the corners of `tile x tile` pixel tiles.
 pub struct TileGrid {
+    /// Tile side, in pixels.
     pub tile: usize,
-    /// Node columns and rows: pixel positions `min(j * tile, size - 1)`.
+    /// Node columns: at pixel columns `min(j * tile, width - 1)`.
     pub nodes_x: usize,
+    /// Node rows: at pixel rows `min(j * tile, height - 1)`.
     pub nodes_y: usize,
     /// Values per node: [`stride`].
     pub stride: usize,

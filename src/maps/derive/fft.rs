@@ -10,13 +10,16 @@ use std::sync::Arc;
 /// the buffer holds `height`-long columns one after another (index `u * height + v` for
 /// column frequency `u`, row frequency `v`); `inverse` takes that layout back to rows.
 pub struct Fft2 {
+    /// Width of the spatial data, in samples (the row transform's length).
     pub width: usize,
+    /// Height of the spatial data, in samples (the column transform's length).
     pub height: usize,
     along_rows: [Arc<dyn Fft<f32>>; 2],
     along_cols: [Arc<dyn Fft<f32>>; 2],
 }
 
 impl Fft2 {
+    /// Plans the forward and inverse transforms for `width x height` data.
     pub fn new(width: usize, height: usize) -> Self {
         let mut planner = FftPlanner::new();
         let mut plan = |n| {

@@ -28,12 +28,17 @@ use crate::error::{Error, Result};
 use crate::fsutil::write_atomic;
 use crate::maps::NormalConvention;
 
+/// The glTF document's file name in the output folder; it names `material.bin` and the PNG textures
+/// beside it.
 pub const GLTF_FILE: &str = "material.gltf";
 
 /// The cloth lobe as KHR_materials_sheen parameters.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct SheenParams {
+    /// `sheenColorFactor`: the lobe's normal-incidence Fresnel reflectance `f0` per RGB channel,
+    /// clamped to 0..1.
     pub color: [f64; 3],
+    /// `sheenRoughnessFactor`: the lobe width `alpha / sqrt(2)`, clamped to 0..1.
     pub roughness: f64,
 }
 

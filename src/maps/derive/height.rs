@@ -22,7 +22,10 @@ const MAX_SLOPE: f32 = 2.0;
 /// Whether the map's edges meet (a seamless tile) or not (a scanned sample).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Boundary {
+    /// The map is a seamless tile: integrated with the FFT as it is, opposite edges meeting.
     Periodic,
+    /// The map is a scanned sample with free edges: integrated as if mirrored to twice its size, so
+    /// the wrap has no jump.
     Mirrored,
 }
 

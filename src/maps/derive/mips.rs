@@ -25,12 +25,18 @@ use crate::plane::Plane;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum RoughnessFilter {
+    /// Seed 004's von Mises-Fisher fit to the average normal's length.
     Vmf,
+    /// Toksvig's factor on the equivalent Blinn-Phong exponent.
     Toksvig,
+    /// Tokuyoshi-Kaplanyan projected-space filtering: the variance of `nx` and `ny` widens
+    /// `alpha^2`, capped.
     Tokuyoshi,
 }
 
 impl RoughnessFilter {
+    /// Reads a filter's lowercase name (`vmf`, `toksvig`, `tokuyoshi`); the error message names the
+    /// valid ones.
     pub fn parse(text: &str) -> std::result::Result<Self, String> {
         match text {
             "vmf" => Ok(RoughnessFilter::Vmf),
@@ -71,12 +77,16 @@ impl RoughnessFilter {
 /// Averages over a texel's footprint of the full-resolution unit normals.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct TexelStats {
+    /// Average normal under the texel, not renormalised (its length is 1 only where all agree).
     pub n: [f64; 3],
+    /// Average of `nx^2` under the texel.
     pub xx: f64,
+    /// Average of `ny^2` under the texel.
     pub yy: f64,
 }
 
 impl TexelStats {
+    /// Length of the average normal, capped at 1: how tightly the normals under the texel agree.
     pub fn mean_length(&self) -> f64 {
         (self.n[0].powi(2) + self.n[1].powi(2) + self.n[2].powi(2))
             .sqrt()
@@ -92,18 +102,22 @@ impl TexelStats {
 /// One level: five planes of footprint averages (`nx`, `ny`, `nz`, `nx^2`, `ny^2`).
 #[derive(Clone, Debug)]
 pub struct Level {
+    /// Footprint averages, in order `nx`, `ny`, `nz`, `nx^2`, `ny^2`, all the level's size.
     pub stats: [Plane; 5],
 }
 
 impl Level {
+    /// The level's width in texels.
     pub fn width(&self) -> usize {
         self.stats[0].width
     }
 
+    /// The level's height in texels.
     pub fn height(&self) -> usize {
         self.stats[0].height
     }
 
+    /// The statistics of texel `i` (row-major index into the level).
     pub fn texel(&self, i: usize) -> TexelStats {
         let s = |k: usize| self.stats[k].data[i] as f64;
         TexelStats {
@@ -142,10 +156,12 @@ impl Level {
 /// The full chain down to 1 x 1 (each level `max(1, size >> level)`, as DDS expects).
 #[derive(Clone, Debug)]
 pub struct MipChain {
+    /// Level 0 (the full-resolution map) first, then each half the size of the last, down to 1 x 1.
     pub levels: Vec<Level>,
 }
 
 impl MipChain {
+    /// Builds the chain from a unit normal map by repeated 2 x 2 box averaging.
     pub fn build(normal: &[Plane; 3]) -> Self {
         let square = |p: &Plane| Plane {
             width: p.width,
@@ -236,12 +252,16 @@ pub(super) fn halve(p: &Plane) -> Plane {
 /// Mean roughness per level, for the report.
 #[derive(Clone, Debug, Serialize)]
 pub struct RoughnessReport {
+    /// The filter that widened the roughness.
     pub filter: RoughnessFilter,
+    /// The base perceptual roughness, level 0's value.
     pub base: f64,
+    /// Mean perceptual roughness of each level, level 0 first.
     pub mean_per_level: Vec<f64>,
 }
 
 impl RoughnessReport {
+    /// Summarises per-level roughness planes (from [`MipChain::roughness`]) made with `options`.
     pub fn new(options: &RoughnessOptions, levels: &[Plane]) -> Self {
         RoughnessReport {
             filter: options.filter,

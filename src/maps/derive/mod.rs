@@ -40,7 +40,9 @@ pub const DERIVE_REPORT: &str = "derive.json";
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Length {
+    /// Millimetres on the sample.
     Mm(f64),
+    /// Pixels of the map.
     Px(f64),
 }
 
@@ -86,13 +88,21 @@ impl Length {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum TileChoice {
-    Repeat { width: Length, height: Length },
+    /// A repeat of the given width and height.
+    Repeat {
+        /// The repeat's width, along image rows.
+        width: Length,
+        /// The repeat's height, along image columns.
+        height: Length,
+    },
+    /// The weave's period, found as the strongest repeat of the albedo's autocorrelation.
     Auto,
 }
 
 /// Specular antialiasing of the roughness mips.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct RoughnessOptions {
+    /// How each level's roughness is widened for the normals it averages.
     pub filter: RoughnessFilter,
     /// The material's GGX roughness (alpha = roughness^2, as in glTF) at full resolution.
     pub base: f64,
@@ -103,15 +113,22 @@ pub struct RoughnessOptions {
 pub struct DeriveOptions {
     /// Cut-off radius of the flattening (detail shorter than this is kept).
     pub flatten: Option<Length>,
+    /// Cut one seamless tile before the later steps; `None` keeps the whole map.
     pub tile: Option<TileChoice>,
+    /// Integrate the normals into a height field (`height.exr`, `height.png`).
     pub height: bool,
+    /// Roughness mips with specular antialiasing; `None` makes none.
     pub roughness: Option<RoughnessOptions>,
     /// Normal-map PNGs (`normal.png`, `normal_xy.png`) and `albedo.png` in these encodings.
     pub textures: bool,
+    /// The normal maps' Y convention (OpenGL +Y up or DirectX +Y down), in the textures and the DDS
+    /// files.
     pub convention: NormalConvention,
     /// 8 or 16.
     pub bits: u8,
+    /// Write DDS files with full mip chains (BC5 normals, BC7 albedo, BC4 roughness).
     pub dds: bool,
+    /// Write the glTF material; it needs the sample's scale (the solve's or `pixel_mm`).
     pub gltf: bool,
     /// Millimetres per pixel on the sample, overriding (or standing in for) the solve's.
     pub pixel_mm: Option<f64>,
@@ -189,33 +206,45 @@ pub enum DeriveSource<'a> {
 /// What `derive` did: figures per step, seconds per step, the files written.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct DeriveReport {
+    /// Width of the derived maps in pixels (the tile's, when tiled).
     pub width: usize,
+    /// Height of the derived maps in pixels (the tile's, when tiled).
     pub height: usize,
     /// Millimetres per pixel, and where that came from (`report.json`, `--pixel-mm`); absent
     /// when unknown (heights are then in pixel units and mm lengths are refused).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub pixel_mm: Option<f64>,
+    /// Where `pixel_mm` came from (`report.json`, the rig, `--pixel-mm`), or why it is unknown.
     pub scale_source: String,
+    /// The flattening's cut-off radius converted to pixels; absent when not flattened.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub flatten_radius_px: Option<f64>,
+    /// What tiling did; absent when not tiled.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tiling: Option<tiling::TilingReport>,
+    /// The height field's units and range; absent when no height was made.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub height_map: Option<HeightReport>,
+    /// Mean roughness per mip level and the filter used; absent when no roughness was made.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub roughness: Option<mips::RoughnessReport>,
     /// The cloth lobe mapped to KHR_materials_sheen, when the solve fitted it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sheen: Option<gltf::SheenParams>,
+    /// Wall-clock seconds of each step that ran, by step name (`load`, `flatten`, ..., `total`).
     pub timings_s: BTreeMap<String, f64>,
+    /// The files written, by file name, with their path in the output folder.
     pub outputs: BTreeMap<String, PathBuf>,
 }
 
+/// What the height step wrote (`height.exr`, `height.png`): the height field's units and range.
 #[derive(Clone, Debug, Serialize)]
 pub struct HeightReport {
     /// `mm` where the scale is known, else `px`.
     pub units: String,
+    /// Lowest height, in `units` (mapped to black in `height.png`).
     pub min: f64,
+    /// Highest height, in `units` (mapped to white in `height.png`).
     pub max: f64,
     /// How the masked least-squares refinement ended, where some pixels were not solved
     /// (their height is 0); absent when the whole map was integrated in the Fourier domain.

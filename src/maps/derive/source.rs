@@ -20,19 +20,23 @@ pub struct SolvedMaps {
     pub albedo: [Plane; 3],
     /// Pixels the solve solved; the others hold a flat normal and black albedo.
     pub solved: Vec<bool>,
+    /// Millimetres per pixel on the sample; `None` when the solve has no scale.
     pub pixel_mm: Option<f64>,
     /// Where `pixel_mm` came from, or why it is missing.
     pub scale_source: String,
     /// The cloth lobe the solve was given, and how many pixels it fitted.
     pub sheen: Option<SheenModel>,
+    /// Pixels where the solve fitted the cloth lobe (their fit is `Sheen`); 0 when none.
     pub sheen_pixels: usize,
 }
 
 impl SolvedMaps {
+    /// Width of the maps in pixels.
     pub fn width(&self) -> usize {
         self.normal[0].width
     }
 
+    /// Height of the maps in pixels.
     pub fn height(&self) -> usize {
         self.normal[0].height
     }

@@ -18,14 +18,18 @@ use crate::plane::Plane;
 pub struct TilingReport {
     /// The repeat in pixels as found (sub-pixel) or given, and as cut (whole pixels).
     pub period_px: [f64; 2],
+    /// The tile's size in whole pixels, width then height (the period rounded, at least 2).
     pub tile_px: [usize; 2],
     /// Top-left corner of the tile in the source map.
     pub origin_px: [usize; 2],
+    /// Width then height of the cross-fades, in pixels: a quarter of the tile, at least 1.
     pub blend_px: [usize; 2],
+    /// Whether the period was found in the albedo (`TileChoice::Auto`) rather than given.
     pub found_from_albedo: bool,
     /// Mean luminance jump across the wrap beyond the mean jump between neighbours inside
     /// the tile: for the plain crop, and for the blended tile.
     pub seam_excess_crop: f64,
+    /// The same figure for the blended tile.
     pub seam_excess_blended: f64,
 }
 
@@ -85,8 +89,11 @@ pub fn tile(maps: &mut SolvedMaps, choice: TileChoice) -> Result<TilingReport> {
 
 /// Where the tile is cut and how wide its blends are.
 pub struct Cut {
+    /// Top-left corner of the tile in the source map, in pixels (x, y).
     pub origin: [usize; 2],
+    /// The tile's width and height in pixels.
     pub tile: [usize; 2],
+    /// Widths in pixels of the blended leading columns and rows.
     pub blend: [usize; 2],
 }
 

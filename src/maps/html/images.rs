@@ -20,7 +20,9 @@ pub const DISPLAY_MAX_SIDE: usize = 1024;
 
 /// A full-resolution map read back from the solve folder.
 pub struct FullMaps {
+    /// Width of the full-resolution maps in pixels.
     pub width: usize,
+    /// Height of the full-resolution maps in pixels.
     pub height: usize,
     /// Linear RGB albedo (display primaries, as `albedo.png` holds them).
     pub albedo: Option<[Plane; 3]>,
@@ -247,12 +249,17 @@ impl FullMaps {
 /// Integer reduction from full to display size.
 #[derive(Clone, Copy, Debug, serde::Serialize)]
 pub struct Reduction {
+    /// Full-resolution pixels per display pixel along each axis (at least 1).
     pub factor: usize,
+    /// Display width in pixels: the full width divided by `factor`, rounded up.
     pub width: usize,
+    /// Display height in pixels: the full height divided by `factor`, rounded up.
     pub height: usize,
 }
 
 impl Reduction {
+    /// The smallest whole factor that brings a `width x height` map's longer side within
+    /// [`DISPLAY_MAX_SIDE`].
     pub fn for_size(width: usize, height: usize) -> Reduction {
         let factor = width.max(height).div_ceil(DISPLAY_MAX_SIDE).max(1);
         Reduction {

@@ -53,10 +53,15 @@ const FRAGMENT_SHADER: &str = include_str!("relight.frag");
 /// What building the page found, for `psscan report --json`.
 #[derive(Clone, Debug, Serialize)]
 pub struct PageSummary {
+    /// Where the page is written (`report.html` in the solve folder).
     pub path: PathBuf,
+    /// The page's size in bytes (0 from `build_page`, which writes nothing).
     pub bytes: usize,
+    /// Width of the full-resolution maps in pixels.
     pub width: usize,
+    /// Height of the full-resolution maps in pixels.
     pub height: usize,
+    /// How the maps were reduced to display size.
     pub display: Reduction,
     /// 1: the loupe shows every pixel; n: every n-th (to stay within the size budget).
     pub loupe_step: usize,
@@ -67,6 +72,7 @@ pub struct PageSummary {
     /// The derive folder whose maps the page shows, and which of them it shows.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub derived: Option<PathBuf>,
+    /// The derived maps the page shows (`height`, `roughness`); empty without a derive.
     pub derived_maps: Vec<String>,
     /// Why `report.json` could not be used, when it could not.
     #[serde(skip_serializing_if = "Option::is_none")]

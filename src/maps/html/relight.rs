@@ -18,7 +18,9 @@ use crate::error::{Error, Result};
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Brdf {
+    /// Lambertian albedo plus GGX specular with Schlick Fresnel at F0 = 0.04.
     Ggx,
+    /// Seed 004's cloth BRDF: Fresnel-weighted Lambertian plus the velvet lobe.
     Cloth,
 }
 
@@ -41,9 +43,12 @@ impl Brdf {
 pub struct RelightParams {
     /// Direction toward the light, world frame (normalised before use).
     pub light: [f32; 3],
+    /// Which BRDF shades the surface.
     pub brdf: Brdf,
     /// GGX `m` / velvet `alpha`.
     pub roughness: f32,
+    /// Scale on the light's irradiance: at 1 a white Lambertian surface facing the light renders as
+    /// 1.0.
     pub exposure: f32,
 }
 
@@ -65,7 +70,10 @@ pub const BACKGROUND: u8 = 40;
 /// `n * 0.5 + 0.5` in the OpenGL convention, black (z < 0) where unsolved.
 #[derive(Clone, Debug)]
 pub struct RelightTextures {
+    /// The albedo at display size, sRGB-encoded, 8 bits per channel.
     pub albedo: RgbImage,
+    /// The normals at display size, `n * 0.5 + 0.5` in 8 bits, OpenGL convention; black where
+    /// unsolved.
     pub normal: RgbImage,
 }
 
