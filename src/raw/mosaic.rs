@@ -261,9 +261,16 @@ impl LinearMosaic {
     /// Subtracts a dark frame sample by sample; a sample saturated in either is saturated.
     pub fn subtract(&mut self, dark: &LinearMosaic) -> Result<()> {
         if (dark.width, dark.height, dark.pattern) != (self.width, self.height, self.pattern) {
+            let describe = |m: &LinearMosaic| {
+                let names = m
+                    .pattern
+                    .map(|row| row.map(|c| ["R", "G", "B"][c as usize].to_string()));
+                format!("{}x{} {}", m.width, m.height, names.concat().concat())
+            };
             return Err(Error::Invalid(format!(
-                "the dark frame is a {}x{} mosaic, the light frame {}x{}",
-                dark.width, dark.height, self.width, self.height
+                "the dark frame is a {} mosaic, the light frame {}",
+                describe(dark),
+                describe(self)
             )));
         }
         self.values

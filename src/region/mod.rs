@@ -50,7 +50,11 @@ impl Roi {
     }
 
     fn check(&self, width: usize, height: usize) -> Result<()> {
-        if self.x + self.width > width || self.y + self.height > height {
+        // Checked sums: a region given as huge numbers must be refused, not overflow.
+        let fits = |start: usize, len: usize, limit: usize| {
+            start.checked_add(len).is_some_and(|end| end <= limit)
+        };
+        if !fits(self.x, self.width, width) || !fits(self.y, self.height, height) {
             return Err(Error::Invalid(format!(
                 "region {},{} {}x{} does not fit in the {width}x{height} frames",
                 self.x, self.y, self.width, self.height

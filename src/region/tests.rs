@@ -146,3 +146,23 @@ fn automatic_background_mask_finds_the_sample_and_skips_the_table() {
     let (max, _) = deviation_deg(&masked, &full);
     assert_eq!(max, 0.0);
 }
+
+#[test]
+fn a_region_past_the_frames_is_refused_even_when_its_numbers_overflow() {
+    let huge = Roi {
+        x: usize::MAX,
+        y: 0,
+        width: 10,
+        height: 10,
+    };
+    let err = huge.check(320, 240).unwrap_err().to_string();
+    assert!(err.contains("does not fit in the 320x240 frames"), "{err}");
+    let inside = Roi {
+        x: 310,
+        y: 230,
+        width: 10,
+        height: 10,
+    };
+    assert!(inside.check(320, 240).is_ok());
+    assert!(Roi { x: 311, ..inside }.check(320, 240).is_err());
+}

@@ -118,7 +118,10 @@ pub fn load(dir: &Path) -> Result<SolvedMaps> {
     );
     let (mut normal, albedo, confidence) = (normal?, albedo?, confidence?);
     let (w, h) = (normal[0].width, normal[0].height);
-    if albedo[0].width != w || albedo[0].height != h || confidence[0].width != w {
+    if [&albedo[0], &confidence[0]]
+        .iter()
+        .any(|p| (p.width, p.height) != (w, h))
+    {
         return Err(Error::Invalid(format!(
             "{}: normal.exr, albedo.exr and confidence.exr differ in size",
             dir.display()
