@@ -103,6 +103,12 @@ pub enum Error {
     #[error("{0}")]
     Invalid(String),
 
+    /// A value psscan could not work out from the data, which the caller can give instead;
+    /// the kind says which, so a caller can name its own way of giving it (the CLI names the
+    /// flag).
+    #[error("{0}")]
+    NeedsValue(Needed),
+
     /// A feature that is not built into this binary or not implemented yet.
     #[error("{0}")]
     Unsupported(String),
@@ -280,6 +286,24 @@ pub enum Conflict {
     RegionOnDiligent {
         /// The DiLiGenT folder.
         dir: PathBuf,
+    },
+}
+
+/// A value the data did not give (see [`Error::NeedsValue`]); its text says why.
+#[derive(Debug, thiserror::Error)]
+pub enum Needed {
+    /// The gray chart's rectangle in its photographs: the chart search found none.
+    #[error("{reason}")]
+    ChartRect {
+        /// Why the search found no rectangle.
+        reason: String,
+    },
+    /// The sensor pixels per image pixel of photographs that are neither the whole sensor
+    /// nor a whole-number binning of it.
+    #[error("{reason}")]
+    SensorStep {
+        /// The photographs' size against the sensor's.
+        reason: String,
     },
 }
 

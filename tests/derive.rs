@@ -476,7 +476,10 @@ fn without_a_scale_mm_lengths_and_gltf_are_refused_and_nothing_is_left_behind() 
     let r = derive(&copy, &out, &["--height"]);
     assert_eq!(r["height_map"]["units"], "px");
     let r = derive(&copy, &out, &["--gltf", "--pixel-mm", "0.1", "--force"]);
-    assert_eq!(r["scale_source"], "--pixel-mm");
+    assert_eq!(
+        r["scale_source"],
+        "given to derive (overrides the solve's report)"
+    );
     // A folder without EXR maps is named.
     std::fs::remove_file(copy.join("normal.exr")).unwrap();
     let o = psscan(&[

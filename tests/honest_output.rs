@@ -183,7 +183,7 @@ fn a_binned_solve_says_its_prediction_covers_noise_only() {
             .starts_with("--bin 2: the predicted error covers")),
         "{warnings:?}"
     );
-    assert!(text.contains("WARNING: --bin 2"), "{text}");
+    assert!(text.contains("WARNING: binned 2x2"), "{text}");
     assert!(whole["warnings"].is_null());
 }
 

@@ -8,7 +8,7 @@
 //! background scores worse. Coarse search on a 4-pixel lattice, then every pixel around the
 //! best, on the CFA cells (2x2 samples) summed over all lights.
 
-use crate::error::{Error, Result};
+use crate::error::{Error, Needed, Result};
 use crate::raw::Mosaic;
 use crate::rig::{ChartDescription, ChartRect};
 
@@ -124,11 +124,13 @@ pub fn find(mosaics: &[Mosaic], chart: &ChartDescription) -> Result<ChartRect> {
     let (rows, cols) = (chart.rows, chart.cols);
     let (max_pw, max_ph) = (w / cols, h / rows);
     if max_pw < MIN_PATCH || max_ph < MIN_PATCH {
-        return Err(Error::Invalid(format!(
-            "the photographs ({}x{}) are too small to find a {rows}x{cols} chart in; give --rect",
-            2 * w,
-            2 * h
-        )));
+        return Err(Error::NeedsValue(Needed::ChartRect {
+            reason: format!(
+                "the photographs ({}x{}) are too small to find a {rows}x{cols} chart in",
+                2 * w,
+                2 * h
+            ),
+        }));
     }
     // Every placement's score; then the largest grid among those that explain the image about
     // as well as the best one (a grid inside the chart's would score as well as the chart's).
@@ -158,7 +160,9 @@ pub fn find(mosaics: &[Mosaic], chart: &ChartDescription) -> Result<ChartRect> {
         }
     }
     let (_, c) = pick(coarse).ok_or_else(|| {
-        Error::Invalid("the gray chart was not found: give --rect X,Y,W,H".into())
+        Error::NeedsValue(Needed::ChartRect {
+            reason: "the gray chart was not found in the photographs".into(),
+        })
     })?;
     let around = |v: usize, lo: usize| v.saturating_sub(step).max(lo)..=v + step;
     let mut fine = Vec::new();
@@ -175,12 +179,14 @@ pub fn find(mosaics: &[Mosaic], chart: &ChartDescription) -> Result<ChartRect> {
     // At the chart, the patch means follow the reflectances and the patches are even: the
     // score is far below 1. Around 1, nothing in the image looks like the chart.
     if s > 0.25 {
-        return Err(Error::Invalid(format!(
-            "no {rows}x{cols} chart with levels rising as its description's reflectances was \
-             found (best fit leaves {:.0} % of the patch spread unexplained): check the chart \
-             lies with its first row at the top of the image, or give --rect X,Y,W,H",
-            100.0 * s
-        )));
+        return Err(Error::NeedsValue(Needed::ChartRect {
+            reason: format!(
+                "no {rows}x{cols} chart with levels rising as its description's reflectances \
+                 was found (best fit leaves {:.0} % of the patch spread unexplained): check the \
+                 chart lies with its first row at the top of the image",
+                100.0 * s
+            ),
+        }));
     }
     Ok(ChartRect {
         x0: (2 * g.x0) as f64,
@@ -206,9 +212,10 @@ mod tests {
                 .map(|i| 3000 + (i * 7919 % 13) as u16)
                 .collect(),
         };
-        let err = find(&[even], &ChartDescription::munsell_12())
-            .unwrap_err()
-            .to_string();
-        assert!(err.contains("--rect"), "{err}");
+        let err = find(&[even], &ChartDescription::munsell_12()).unwrap_err();
+        assert!(
+            matches!(err, Error::NeedsValue(Needed::ChartRect { .. })),
+            "{err}"
+        );
     }
 }

@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::error::{Error, Result};
+use crate::error::{Error, Needed, Result};
 use crate::io::read_exr;
 use crate::plane::{LightFrame, Mask, RgbPlanes, SensorWindow};
 use crate::raw::{
@@ -219,19 +219,24 @@ pub fn image_window(
     let (sw, sh) = (rig.camera.width as usize, rig.camera.height as usize);
     let step = match step {
         Some(s) if s.is_finite() && s > 0.0 => s,
-        Some(s) => return Err(Error::Invalid(format!("--step {s}: must be positive"))),
+        Some(s) => {
+            return Err(Error::Invalid(format!(
+                "a sensor step of {s}: must be positive"
+            )))
+        }
         None => {
             let s = sw as f64 / width as f64;
             // A binned copy of the sensor keeps floor(size / step) pixels each way.
             if (sh as f64 / s).floor() as usize != height
                 && (sh as f64 / s).round() as usize != height
             {
-                return Err(Error::Invalid(format!(
-                    "the photographs are {width}x{height}, which is neither rig \"{}\"'s \
-                     {sw}x{sh} sensor nor a binned copy of it: give --step (sensor pixels per \
-                     image pixel; the photographs are taken as centred on the sensor)",
-                    rig.name
-                )));
+                return Err(Error::NeedsValue(Needed::SensorStep {
+                    reason: format!(
+                        "the photographs are {width}x{height}, which is neither rig \"{}\"'s \
+                         {sw}x{sh} sensor nor a binned copy of it",
+                        rig.name
+                    ),
+                }));
             }
             s
         }
@@ -276,10 +281,11 @@ mod tests {
         );
         let binned = image_window(&rig, (w / 8, h / 8), None).unwrap();
         assert_eq!(binned, SensorWindow::centred(w, h, w / 8, h / 8, 8.0));
-        let err = image_window(&rig, (1024, 512), None)
-            .unwrap_err()
-            .to_string();
-        assert!(err.contains("--step"), "{err}");
+        let err = image_window(&rig, (1024, 512), None).unwrap_err();
+        assert!(
+            matches!(err, Error::NeedsValue(Needed::SensorStep { .. })),
+            "{err}"
+        );
         let given = image_window(&rig, (1024, 512), Some(2.0)).unwrap();
         assert_eq!(given, SensorWindow::centred(w, h, 1024, 512, 2.0));
     }

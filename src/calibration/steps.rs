@@ -345,8 +345,8 @@ pub fn assemble_bundle(
             sheet.lights.check_usable(path)?;
             if inputs.camera.is_some() && !same_camera(&composed, &sheet.rig) {
                 return Err(Error::Invalid(format!(
-                    "{} was fitted with another camera or table pose than --camera and --table \
-                     give: run the white sheet step again with these",
+                    "{} was fitted with another camera or table pose than the camera and table \
+                     steps given here: run the white sheet step again with these",
                     path.display()
                 )));
             }

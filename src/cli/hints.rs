@@ -1,7 +1,7 @@
 //! Flag hints: the library's typed errors say what went wrong; this adds which of psscan's
 //! flags (or which command) fixes it, so only the CLI knows the flags' names.
 
-use psscan::error::{BundleProblem, Conflict, Occupied, PortSearch};
+use psscan::error::{BundleProblem, Conflict, Needed, Occupied, PortSearch};
 use psscan::Error;
 
 /// How a stopped capture is completed from the command that ran it.
@@ -76,6 +76,13 @@ fn hint(err: &Error, resume: Resume) -> Option<&'static str> {
                 "--roi, --bin and --background apply to psscan capture sets only"
             }
         },
+        Error::NeedsValue(needed) => match needed {
+            Needed::ChartRect { .. } => "give the chart's place with --rect X,Y,W,H",
+            Needed::SensorStep { .. } => {
+                "give --step (sensor pixels per image pixel; the photographs are taken as \
+                 centred on the sensor)"
+            }
+        },
         _ => return None,
     })
 }
@@ -131,6 +138,18 @@ mod tests {
                     }),
                 },
                 "--no-calibration",
+            ),
+            (
+                Error::NeedsValue(Needed::ChartRect {
+                    reason: "the gray chart was not found in the photographs".into(),
+                }),
+                "--rect X,Y,W,H",
+            ),
+            (
+                Error::NeedsValue(Needed::SensorStep {
+                    reason: "the photographs are 1024x512".into(),
+                }),
+                "--step",
             ),
         ];
         for (err, flag) in cases {

@@ -90,7 +90,7 @@ pub fn light_counts(options: &EvalOptions, total: usize) -> Result<Vec<usize>> {
         let k = k.unwrap_or(total).min(total);
         if k < 3 {
             return Err(Error::Invalid(format!(
-                "--lights {k}: photometric stereo needs at least 3 lights"
+                "a subset of {k} lights: photometric stereo needs at least 3"
             )));
         }
         counts.push(k);

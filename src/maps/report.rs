@@ -350,7 +350,7 @@ impl Report {
     pub fn set_region(&mut self, region: RegionInfo) {
         if region.bin > 1 {
             self.warnings.push(
-                "--bin 2: the predicted error covers the sensor noise of the binned pixels \
+                "binned 2x2: the predicted error covers the sensor noise of the binned pixels \
                  (a quarter of the variance) only. Where a 2x2 block straddles an edge of the \
                  relief (thread edges, gaps) its four normals do not add up to one Lambertian \
                  surface, and some lights graze part of the block: that error is not \

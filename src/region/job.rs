@@ -51,7 +51,7 @@ pub fn select_region(
         }
         n => {
             return Err(Error::Invalid(format!(
-                "--bin {n}: only 1 and 2 are supported"
+                "binning by {n}: only 1 (none) and 2 (2x2 blocks) are supported"
             )))
         }
     }

@@ -35,7 +35,7 @@ impl Roi {
             .split(',')
             .map(|p| p.trim().parse::<usize>())
             .collect::<std::result::Result<_, _>>()
-            .map_err(|e| Error::Invalid(format!("--roi {text:?}: {e} (expected x,y,w,h)")))?;
+            .map_err(|e| Error::Invalid(format!("region {text:?}: {e} (expected x,y,w,h)")))?;
         match parts[..] {
             [x, y, width, height] if width > 0 && height > 0 => Ok(Roi {
                 x,
@@ -44,7 +44,7 @@ impl Roi {
                 height,
             }),
             _ => Err(Error::Invalid(format!(
-                "--roi {text:?}: expected x,y,w,h with w and h > 0"
+                "region {text:?}: expected x,y,w,h with w and h > 0"
             ))),
         }
     }

@@ -172,7 +172,7 @@ impl DeriveOptions {
     fn validate(&self) -> Result<()> {
         if self.bits != 8 && self.bits != 16 {
             return Err(Error::Invalid(format!(
-                "--bits must be 8 or 16, got {}",
+                "texture bits per channel must be 8 or 16, got {}",
                 self.bits
             )));
         }
@@ -187,7 +187,7 @@ impl DeriveOptions {
         if let Some(mm) = self.pixel_mm {
             if !(mm.is_finite() && mm > 0.0) {
                 return Err(Error::Invalid(format!(
-                    "--pixel-mm must be positive, got {mm}"
+                    "the pixel size on the sample must be positive (mm), got {mm}"
                 )));
             }
         }
@@ -283,7 +283,7 @@ pub fn derive(
     };
     if let Some(mm) = options.pixel_mm {
         maps.pixel_mm = Some(mm);
-        report.scale_source = "--pixel-mm".into();
+        report.scale_source = "given to derive (overrides the solve's report)".into();
     }
     report.pixel_mm = maps.pixel_mm;
     let dir = stage.path();

@@ -100,7 +100,7 @@ pub fn load(dir: &Path) -> Result<SolvedMaps> {
         let path = dir.join(name);
         if !path.exists() {
             return Err(Error::Invalid(format!(
-                "{}: missing; derive needs a solve written with EXR maps (solve without --no-exr)",
+                "{}: missing; derive reads a solve's EXR maps (normal.exr, albedo.exr, confidence.exr), and this solve did not write them",
                 path.display()
             )));
         }
