@@ -26,125 +26,170 @@ pub struct MaskedSolve {
     pub relative_residual: f64,
 }
 
-/// The grid and which of its pixels take part: neighbours `i` and `j` are linked when both
-/// are solved (across the left/right and top/bottom edges too when `wrap`).
-struct Graph<'a> {
+/// Which of a pixel's four neighbours it is linked to (both solved): bit flags.
+const LEFT: u8 = 1;
+const RIGHT: u8 = 2;
+const UP: u8 = 4;
+const DOWN: u8 = 8;
+
+/// The grid's links, one byte of flags per pixel, worked out once: the iteration's stencil
+/// then reads a byte instead of testing the mask and the borders four times per pixel.
+struct Graph {
     width: usize,
     height: usize,
-    solved: &'a [bool],
-    wrap: bool,
+    links: Vec<u8>,
 }
 
-impl Graph<'_> {
-    /// The pixel right of `i` (column + 1) when the two are linked.
-    fn right(&self, i: usize) -> Option<usize> {
-        let c = i % self.width;
-        let j = if c + 1 < self.width {
-            i + 1
-        } else if self.wrap && self.width > 1 {
-            i + 1 - self.width
-        } else {
-            return None;
+impl Graph {
+    /// Neighbours `i` and `j` are linked when both are solved (across the left/right and
+    /// top/bottom edges too when `wrap`).
+    fn new(width: usize, height: usize, solved: &[bool], wrap: bool) -> Self {
+        let n = width * height;
+        let mut links = vec![0u8; n];
+        links
+            .par_chunks_mut(width)
+            .enumerate()
+            .for_each(|(y, row)| {
+                for (x, flags) in row.iter_mut().enumerate() {
+                    let i = y * width + x;
+                    if !solved[i] {
+                        continue;
+                    }
+                    let graph = Offsets {
+                        width,
+                        height,
+                        wrap,
+                    };
+                    let linked = |j: Option<usize>| j.is_some_and(|j| solved[j]);
+                    *flags = (linked(graph.left(x, y)) as u8 * LEFT)
+                        | (linked(graph.right(x, y)) as u8 * RIGHT)
+                        | (linked(graph.up(x, y)) as u8 * UP)
+                        | (linked(graph.down(x, y)) as u8 * DOWN);
+                }
+            });
+        Graph {
+            width,
+            height,
+            links,
+        }
+    }
+
+    /// The index of each linked neighbour of pixel `(x, y)`, in the order left, right, up,
+    /// down (`None` where not linked).
+    #[inline]
+    fn neighbours(&self, x: usize, y: usize) -> [Option<usize>; 4] {
+        let flags = self.links[y * self.width + x];
+        let offsets = Offsets {
+            width: self.width,
+            height: self.height,
+            wrap: true,
         };
-        (self.solved[i] && self.solved[j]).then_some(j)
+        let pick = |bit: u8, j: Option<usize>| if flags & bit != 0 { j } else { None };
+        [
+            pick(LEFT, offsets.left(x, y)),
+            pick(RIGHT, offsets.right(x, y)),
+            pick(UP, offsets.up(x, y)),
+            pick(DOWN, offsets.down(x, y)),
+        ]
     }
 
-    /// The pixel below `i` (row + 1) when the two are linked.
-    fn below(&self, i: usize) -> Option<usize> {
-        let n = self.width * self.height;
-        let j = if i + self.width < n {
-            i + self.width
-        } else if self.wrap && self.height > 1 {
-            i + self.width - n
-        } else {
-            return None;
-        };
-        (self.solved[i] && self.solved[j]).then_some(j)
-    }
-
-    /// The pixel left of `i`, when linked.
-    fn left(&self, i: usize) -> Option<usize> {
-        let c = i % self.width;
-        let j = if c > 0 {
-            i - 1
-        } else if self.wrap && self.width > 1 {
-            i + self.width - 1
-        } else {
-            return None;
-        };
-        (self.solved[i] && self.solved[j]).then_some(j)
-    }
-
-    /// The pixel above `i`, when linked.
-    fn above(&self, i: usize) -> Option<usize> {
-        let n = self.width * self.height;
-        let j = if i >= self.width {
-            i - self.width
-        } else if self.wrap && self.height > 1 {
-            i + n - self.width
-        } else {
-            return None;
-        };
-        (self.solved[i] && self.solved[j]).then_some(j)
-    }
-
-    /// `i`'s linked neighbours.
-    fn neighbours(&self, i: usize) -> impl Iterator<Item = usize> + '_ {
-        [self.left(i), self.right(i), self.above(i), self.below(i)]
-            .into_iter()
-            .flatten()
-    }
-
-    /// `(A z)_i = deg_i z_i - sum of z over i's neighbours`, into `out`.
-    fn apply(&self, z: &[f32], out: &mut [f32]) {
-        out.par_iter_mut().enumerate().for_each(|(i, o)| {
-            let (mut degree, mut sum) = (0.0f32, 0.0f32);
-            for j in self.neighbours(i) {
-                degree += 1.0;
-                sum += z[j];
-            }
-            *o = degree * z[i] - sum;
-        });
+    /// `out = A z` (`(A z)_i = deg_i z_i - sum of z over i's neighbours`), returning
+    /// `z . A z`.
+    fn apply(&self, z: &[f32], out: &mut [f32]) -> f64 {
+        let w = self.width;
+        out.par_chunks_mut(w)
+            .enumerate()
+            .map(|(y, row)| {
+                let mut curvature = 0.0f64;
+                for (x, o) in row.iter_mut().enumerate() {
+                    let i = y * w + x;
+                    let (mut degree, mut sum) = (0.0f32, 0.0f32);
+                    for j in self.neighbours(x, y).into_iter().flatten() {
+                        degree += 1.0;
+                        sum += z[j];
+                    }
+                    *o = degree * z[i] - sum;
+                    curvature += z[i] as f64 * *o as f64;
+                }
+                curvature
+            })
+            .sum()
     }
 
     /// The normal equations' right-hand side for slopes `p = dz/dcolumn`, `q = dz/drow`:
     /// each link's target difference is the mean of its two pixels' slopes along it, and
     /// `b_i` sums the targets of links arriving at `i` minus those leaving it.
     fn divergence(&self, p: &[f32], q: &[f32]) -> Vec<f32> {
+        let w = self.width;
         (0..p.len())
             .into_par_iter()
             .map(|i| {
-                let mut b = 0.0f32;
-                if let Some(j) = self.left(i) {
-                    b += 0.5 * (p[i] + p[j]);
-                }
-                if let Some(j) = self.right(i) {
-                    b -= 0.5 * (p[i] + p[j]);
-                }
-                if let Some(j) = self.above(i) {
-                    b += 0.5 * (q[i] + q[j]);
-                }
-                if let Some(j) = self.below(i) {
-                    b -= 0.5 * (q[i] + q[j]);
-                }
-                b
+                let [left, right, up, down] = self.neighbours(i % w, i / w);
+                let mean = |s: &[f32], j: Option<usize>| j.map_or(0.0, |j| 0.5 * (s[i] + s[j]));
+                mean(p, left) - mean(p, right) + mean(q, up) - mean(q, down)
             })
             .collect()
     }
 
     /// `1 / deg_i` (0 for a pixel with no links: it takes no part in the solve).
     fn inverse_degrees(&self) -> Vec<f32> {
-        (0..self.solved.len())
-            .into_par_iter()
-            .map(|i| {
-                let degree = self.neighbours(i).count();
-                if degree > 0 {
-                    1.0 / degree as f32
-                } else {
-                    0.0
-                }
+        self.links
+            .par_iter()
+            .map(|&flags| match flags.count_ones() {
+                0 => 0.0,
+                d => 1.0 / d as f32,
             })
             .collect()
+    }
+}
+
+/// Neighbour indices on a `width x height` grid, wrapping at the edges when `wrap`.
+struct Offsets {
+    width: usize,
+    height: usize,
+    wrap: bool,
+}
+
+impl Offsets {
+    #[inline]
+    fn at(&self, x: usize, y: usize) -> Option<usize> {
+        Some(y * self.width + x)
+    }
+    #[inline]
+    fn left(&self, x: usize, y: usize) -> Option<usize> {
+        match x {
+            0 if self.wrap && self.width > 1 => self.at(self.width - 1, y),
+            0 => None,
+            _ => self.at(x - 1, y),
+        }
+    }
+    #[inline]
+    fn right(&self, x: usize, y: usize) -> Option<usize> {
+        if x + 1 < self.width {
+            self.at(x + 1, y)
+        } else if self.wrap && self.width > 1 {
+            self.at(0, y)
+        } else {
+            None
+        }
+    }
+    #[inline]
+    fn up(&self, x: usize, y: usize) -> Option<usize> {
+        match y {
+            0 if self.wrap && self.height > 1 => self.at(x, self.height - 1),
+            0 => None,
+            _ => self.at(x, y - 1),
+        }
+    }
+    #[inline]
+    fn down(&self, x: usize, y: usize) -> Option<usize> {
+        if y + 1 < self.height {
+            self.at(x, y + 1)
+        } else if self.wrap && self.height > 1 {
+            self.at(x, 0)
+        } else {
+            None
+        }
     }
 }
 
@@ -160,45 +205,51 @@ pub fn refine(
     wrap: bool,
     max_iterations: usize,
 ) -> MaskedSolve {
-    let graph = Graph {
-        width,
-        height,
-        solved,
-        wrap,
-    };
+    let graph = Graph::new(width, height, solved, wrap);
     let b = graph.divergence(p, q);
     let inverse_degree = graph.inverse_degrees();
     let mut r = vec![0.0f32; z.len()];
     graph.apply(z, &mut r);
     r.par_iter_mut().zip(&b).for_each(|(r, b)| *r = b - *r);
     let b_norm = dot(&b, &b).sqrt();
-    let mut d = scaled(&r, &inverse_degree);
-    let mut rho = dot(&r, &d);
+    drop(b);
+    let mut s = scaled(&r, &inverse_degree);
+    let mut d = s.clone();
+    let mut rho = dot(&r, &s);
     let mut ad = vec![0.0f32; z.len()];
     let mut iterations = 0;
     let mut residual = dot(&r, &r).sqrt();
     while iterations < max_iterations && residual > TOLERANCE * b_norm {
-        graph.apply(&d, &mut ad);
-        let curvature = dot(&d, &ad);
+        let curvature = graph.apply(&d, &mut ad);
         if curvature <= 0.0 {
             break;
         }
         let alpha = (rho / curvature) as f32;
-        z.par_iter_mut()
-            .zip(r.par_iter_mut())
-            .zip(d.par_iter().zip(&ad))
-            .for_each(|((z, r), (d, ad))| {
-                *z += alpha * d;
-                *r -= alpha * ad;
-            });
-        let preconditioned = scaled(&r, &inverse_degree);
-        let rho_next = dot(&r, &preconditioned);
+        // One pass: step z and r, precondition r, and sum r.s and r.r.
+        let (rho_next, rr) = z
+            .par_chunks_mut(width)
+            .zip(r.par_chunks_mut(width))
+            .zip(s.par_chunks_mut(width))
+            .zip(d.par_chunks(width).zip(ad.par_chunks(width)))
+            .zip(inverse_degree.par_chunks(width))
+            .map(|((((z, r), s), (d, ad)), m)| {
+                let (mut rs, mut rr) = (0.0f64, 0.0f64);
+                for x in 0..z.len() {
+                    z[x] += alpha * d[x];
+                    r[x] -= alpha * ad[x];
+                    s[x] = r[x] * m[x];
+                    rs += r[x] as f64 * s[x] as f64;
+                    rr += r[x] as f64 * r[x] as f64;
+                }
+                (rs, rr)
+            })
+            .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
         let beta = (rho_next / rho) as f32;
         rho = rho_next;
         d.par_iter_mut()
-            .zip(&preconditioned)
+            .zip(&s)
             .for_each(|(d, s)| *d = s + beta * *d);
-        residual = dot(&r, &r).sqrt();
+        residual = rr.sqrt();
         iterations += 1;
     }
     let pixels = solved.iter().filter(|&&s| s).count();
