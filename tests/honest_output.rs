@@ -180,7 +180,7 @@ fn a_binned_solve_says_its_prediction_covers_noise_only() {
         warnings.iter().any(|w| w
             .as_str()
             .unwrap()
-            .starts_with("--bin 2: the predicted error covers")),
+            .starts_with("binned 2x2: the predicted error covers")),
         "{warnings:?}"
     );
     assert!(text.contains("WARNING: binned 2x2"), "{text}");

@@ -184,13 +184,17 @@ fn encode_strip(
     width: usize,
     format: ImageFormat,
 ) -> std::result::Result<Vec<u8>, image_dds::error::SurfaceError> {
+    // Whole blocks before any encoder sees them: a level smaller than a block (the last
+    // mips) or a strip of odd size would otherwise be padded with black by the encoder, and
+    // a block's endpoints would span that black as well as its texels.
+    let (padded, pw, ph) = pad_to_blocks(texels, width);
     if format == ImageFormat::BC7RgbaUnormSrgb {
-        return Ok(encode_bc7_opaque(texels, width));
+        return Ok(encode_bc7_opaque(&padded, pw, ph));
     }
-    let bytes: Vec<u8> = texels.iter().flatten().copied().collect();
+    let bytes: Vec<u8> = padded.iter().flatten().copied().collect();
     let strip = SurfaceRgba8 {
-        width: width as u32,
-        height: (texels.len() / width) as u32,
+        width: pw as u32,
+        height: ph as u32,
         depth: 1,
         layers: 1,
         mipmaps: 1,
@@ -201,24 +205,74 @@ fn encode_strip(
         .data)
 }
 
-/// BC7 with the ISPC encoder's opaque "very fast" settings: the albedo has no alpha, and the
-/// alpha-capable settings image_dds uses spend their effort on a constant channel. The strip
-/// is padded to whole 4 x 4 blocks by repeating its last column and row, as block encoders do.
-fn encode_bc7_opaque(texels: &[[u8; 4]], width: usize) -> Vec<u8> {
+/// `texels` (`width` wide, whole rows) padded to whole 4 x 4 blocks by repeating the last
+/// column and row: the padding then costs a block's palette nothing. Returns the padded
+/// texels and their width and height.
+fn pad_to_blocks(texels: &[[u8; 4]], width: usize) -> (Vec<[u8; 4]>, usize, usize) {
     let height = texels.len() / width;
     let (pw, ph) = (width.next_multiple_of(4), height.next_multiple_of(4));
-    let padded: Vec<u8> = (0..ph)
+    let padded = (0..ph)
         .flat_map(|y| {
             let row = &texels[y.min(height - 1) * width..][..width];
             (0..pw).map(move |x| row[x.min(width - 1)])
         })
-        .flatten()
         .collect();
+    (padded, pw, ph)
+}
+
+/// BC7 with the ISPC encoder's opaque "very fast" settings: the albedo has no alpha, and the
+/// alpha-capable settings image_dds uses spend their effort on a constant channel. `texels`
+/// are whole blocks, `width x height`.
+fn encode_bc7_opaque(texels: &[[u8; 4]], width: usize, height: usize) -> Vec<u8> {
+    let bytes: Vec<u8> = texels.iter().flatten().copied().collect();
     let surface = intel_tex_2::RgbaSurface {
-        data: &padded,
-        width: pw as u32,
-        height: ph as u32,
-        stride: (pw * 4) as u32,
+        data: &bytes,
+        width: width as u32,
+        height: height as u32,
+        stride: (width * 4) as u32,
     };
     intel_tex_2::bc7::compress_blocks(&intel_tex_2::bc7::opaque_very_fast_settings(), &surface)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A level smaller than a block (a 2 x 2 mip of a curved object: four far-apart normals)
+    /// keeps BC5's precision: the block's padding repeats its texels, so its endpoints span
+    /// only their codes. Padded with black instead, the palette also spans code 0, and its
+    /// steps grow from (180 - 60) / 7 to 180 / 7 codes.
+    #[test]
+    fn a_level_smaller_than_a_block_is_padded_with_its_own_texels() {
+        let texels = [
+            [60, 180, 0, 255],
+            [180, 60, 0, 255],
+            [90, 120, 0, 255],
+            [150, 100, 0, 255],
+        ];
+        let blocks = encode_strip(&texels, 2, ImageFormat::BC5RgUnorm).unwrap();
+        assert_eq!(blocks.len(), 16, "one BC5 block");
+        let surface = Surface {
+            width: 4,
+            height: 4,
+            depth: 1,
+            layers: 1,
+            mipmaps: 1,
+            image_format: ImageFormat::BC5RgUnorm,
+            data: blocks,
+        };
+        let decoded = surface.decode_rgba8().unwrap().data;
+        // A palette of 8 levels over 60..180: half a step is 120 / 14 < 9 codes, plus one
+        // for the endpoints' rounding.
+        for (i, t) in [(0, 0), (1, 1), (4, 2), (5, 3)] {
+            for c in 0..2 {
+                let got = decoded[i * 4 + c] as i32;
+                let want = texels[t][c] as i32;
+                assert!(
+                    (got - want).abs() <= 10,
+                    "texel {t} channel {c}: {got} vs {want}"
+                );
+            }
+        }
+    }
 }
