@@ -72,6 +72,7 @@ const SOLVE_CHAIN: &[&str] = &[
     "robust",
     "kernel",
     "tiles",
+    "noise_sums",
     "fast",
     "adaptive",
 ];
@@ -333,4 +334,25 @@ fn solve_is_a_chain() {
         against.is_empty(),
         "solve's files import against the chain's order: {against:?}"
     );
+}
+
+/// Issue 15: no source file over 600 lines outside tests (test files, and `#[cfg(test)]`
+/// modules written inline, do not count).
+#[test]
+fn no_source_file_is_over_600_lines() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let long: Vec<String> = rust_files(&src)
+        .into_iter()
+        .filter(|p| {
+            let name = p.file_name().unwrap().to_string_lossy();
+            let test_file = name == "tests.rs" || name.starts_with("tests_");
+            !(test_file || p.components().any(|c| c.as_os_str() == "tests"))
+        })
+        .filter_map(|p| {
+            let text = without_test_modules(&fs::read_to_string(&p).unwrap());
+            let lines = text.lines().count();
+            (lines > 600).then(|| format!("{} ({lines} lines)", p.display()))
+        })
+        .collect();
+    assert!(long.is_empty(), "split these: {long:?}");
 }

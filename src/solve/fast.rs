@@ -27,12 +27,13 @@ use rayon::prelude::*;
 
 use super::kernel::{Kernel, RowOut, Scratch};
 use super::lanes::{
-    adjugate, apply, dot, frob_sq, load, madd, mix, prefetch, sandwich, store, subtract_if,
-    vectors, vectors6, Real, LANES, PREFETCH_AHEAD, SYM, V,
+    adjugate, apply, dot, frob_sq, load, madd, mix, prefetch, store, subtract_if, vectors,
+    vectors6, Real, LANES, PREFETCH_AHEAD, V,
 };
 use super::lights::Illumination;
+use super::noise_sums::{LightLanes, NoiseSums, Weighing};
 use super::options::SolveOptions;
-use super::tiles::{self, exact_coefficients, TileGrid};
+use super::tiles::{self, exact_coefficients, Source, TileGrid};
 use super::{PixelFit, PixelStatus, SolveInput, SolveResult, LUMINANCE_WEIGHTS};
 use crate::plane::Frames;
 use crate::progress::Progress;
@@ -64,21 +65,6 @@ pub struct Context<'a> {
     /// Set where the lights are weighed by their noise: the adaptive screen's statistic or
     /// the predicted error is asked for.
     weighing: Option<Weighing>,
-}
-
-/// What weighing each light by its noise needs: the noise model and what the weights are for.
-#[derive(Clone, Copy)]
-struct Weighing {
-    noise: super::NoiseModel,
-    /// The chi-square test's relative model error, squared.
-    relative_var: f64,
-    /// Compute the chi-square statistic of the least-squares fit (the adaptive screen).
-    statistic: bool,
-    /// Compute the predicted error.
-    predict: bool,
-    /// How far the tiled light directions may lie from the exact ones (radians; 0 for exact
-    /// coefficients): the statistic's slack.
-    tile_rad: f64,
 }
 
 impl<'a> Context<'a> {
@@ -117,20 +103,6 @@ impl<'a> Context<'a> {
         if let Some(w) = &mut self.weighing {
             w.tile_rad = degrees.to_radians();
         }
-    }
-}
-
-impl Weighing {
-    fn new(input: &SolveInput, options: &SolveOptions) -> Option<Self> {
-        let statistic = options.streaming() && options.estimator() == super::Estimator::Adaptive;
-        let predict = options.predict_error;
-        (statistic || predict).then_some(Weighing {
-            noise: input.noise,
-            relative_var: options.robust.relative_model_error.powi(2),
-            statistic,
-            predict,
-            tile_rad: 0.0,
-        })
     }
 }
 
@@ -287,7 +259,12 @@ fn solve_row<T: Real, const FMA: bool>(
         return;
     }
     if let Coefficients::Tiled(grid) = ctx.coefficients {
-        prepare_row(grid, y, ctx.frames.height, w, scratch);
+        grid.interpolate_row(
+            y,
+            (w, ctx.frames.height),
+            &mut scratch.row_left,
+            &mut scratch.row_slope,
+        );
     }
     let mut x0 = 0;
     while x0 < w {
@@ -340,66 +317,6 @@ fn solve_row<T: Real, const FMA: bool>(
                 row.reset(x + l, PixelStatus::OutsideMask);
                 scratch.statistic[x + l] = 0.0;
             }
-        }
-    }
-}
-
-/// Interpolates the node coefficients to row `y`: the value at each node column and the
-/// slope toward the next one.
-#[inline(always)]
-fn prepare_row<T: Real>(grid: &TileGrid, y: usize, h: usize, w: usize, s: &mut RowScratch<T>) {
-    let (jy, ty) = grid.locate(y, h, grid.nodes_y);
-    let jy1 = (jy + 1).min(grid.nodes_y - 1);
-    let stride = grid.stride;
-    // Iterators, not indices: the loops vectorise (indexed, the second ran scalar).
-    for (jx, left) in s.row_left.chunks_exact_mut(stride).enumerate() {
-        let (a, c) = (grid.node(jx, jy), grid.node(jx, jy1));
-        for ((o, &a), &c) in left.iter_mut().zip(a).zip(c) {
-            *o = T::of(a + (c - a) * ty);
-        }
-    }
-    let left = &s.row_left;
-    for (jx, slope) in s.row_slope.chunks_exact_mut(stride).enumerate() {
-        let jx1 = (jx + 1).min(grid.nodes_x - 1);
-        let span = grid.node_pos(jx1, w) as f64 - grid.node_pos(jx, w) as f64;
-        let inv = T::of(if span > 0.0 { 1.0 / span } else { 0.0 });
-        let this = &left[jx * stride..(jx + 1) * stride];
-        let next = &left[jx1 * stride..(jx1 + 1) * stride];
-        for ((o, &a), &b) in slope.iter_mut().zip(this).zip(next) {
-            *o = (b - a) * inv;
-        }
-    }
-}
-
-/// Where a chunk's coefficients come from: a straight line along the row (the chunk lies in
-/// one tile: each value is `left + slope * offset`, computed where it is used), or a table.
-enum Source<'a, T> {
-    Linear {
-        left: &'a [T],
-        slope: &'a [T],
-        offset: [T; LANES],
-    },
-    Table(&'a [[T; LANES]]),
-}
-
-impl<T: Real> Source<'_, T> {
-    /// Coefficient `i` for every lane.
-    #[inline(always)]
-    fn get<const FMA: bool>(&self, i: usize) -> [T; LANES] {
-        match self {
-            Source::Linear {
-                left,
-                slope,
-                offset,
-            } => {
-                let (a, b) = (left[i], slope[i]);
-                let mut out = *offset;
-                for o in &mut out {
-                    *o = madd::<T, FMA>(b, *o, a);
-                }
-                out
-            }
-            Source::Table(t) => t[i],
         }
     }
 }
@@ -643,215 +560,6 @@ fn solve_chunk<T: Real, const FMA: bool>(
     }
     row.status[x..x + LANES].fill(PixelStatus::Solved);
     ok
-}
-
-/// One light's values in a chunk, as [`NoiseSums::add`] reads them.
-struct LightLanes<'a, T> {
-    /// The raw channel values.
-    rgb: [&'a [T; LANES]; 3],
-    /// Exposure over the LED's colour scale, per channel.
-    scale: &'a [T; 3],
-    inv_falloff: &'a [T; LANES],
-    /// The light-normalised luminance (0 where the light is dropped).
-    lum: &'a [T; LANES],
-    /// 1 where the light is dropped (dark, saturated, not finite), else 0.
-    dropped: &'a [T; LANES],
-    direction: [&'a [T; LANES]; 3],
-}
-
-/// Sums over a chunk's lights, each weighed by its luminance variance `s_k^2` under the noise
-/// model (`NoiseModel::luminance_variance`, the exact kernel's), from which the chi-square
-/// statistic of the least-squares fit and its predicted error follow without a second pass:
-///
-/// - `sum_k r_k^2 / t_k^2 = Q0 - 2 N . q + N^T P N` with `t_k^2` the test variance (`s_k^2`
-///   plus the model error and storage precision, as `ChiSquare::prepare`), `Q0 = sum w I^2`,
-///   `q = sum w I l`, `P = sum w l l^T`, `w = 1 / t^2`;
-/// - the normal's covariance `A^-1 (sum_k s_k^2 l_k l_k^T) A^-1` (`predict`).
-struct NoiseSums<T> {
-    weighing: Weighing,
-    /// Per lane, which channel holds the pixel's own CFA sample (shared-sample frames).
-    own: Option<[u8; LANES]>,
-    q0: [T; LANES],
-    q: [[T; LANES]; 3],
-    /// `P` and `sum s^2 l l^T`, symmetric (xx, xy, xz, yy, yz, zz).
-    p: [[T; LANES]; 6],
-    cov: [[T; LANES]; 6],
-}
-
-impl<T: Real> NoiseSums<T> {
-    #[inline(always)]
-    fn new(weighing: Weighing, (x, y): (usize, usize)) -> Self {
-        let own = weighing.noise.shared_cfa_sample.map(|pattern| {
-            let mut own = [0u8; LANES];
-            for (l, o) in own.iter_mut().enumerate() {
-                *o = pattern[y % 2][(x + l) % 2];
-            }
-            own
-        });
-        let zero = [T::zero(); LANES];
-        NoiseSums {
-            weighing,
-            own,
-            q0: zero,
-            q: [zero; 3],
-            p: [zero; 6],
-            cov: [zero; 6],
-        }
-    }
-
-    /// Adds one light.
-    #[inline(always)]
-    fn add<const FMA: bool>(&mut self, light: &LightLanes<T>) {
-        let w = &self.weighing;
-        let (photon, floor) = (T::of(w.noise.photon), T::of(w.noise.floor));
-        // Per channel `(w_c s_c)^2 chi_c`: with the inverse falloff squared, the factor of a
-        // channel's raw variance in the luminance's (independent channels).
-        let mut k = [T::zero(); 3];
-        for (c, k) in k.iter_mut().enumerate() {
-            let ws = T::of(LUMINANCE_WEIGHTS[c]) * light.scale[c];
-            *k = ws * ws * T::of(w.noise.channel_scale[c]);
-        }
-        // The test variance adds the model error and the f32 storage's rounding of `I`.
-        let relative = T::of(w.relative_var + (f32::EPSILON as f64).powi(2) / 12.0);
-        let tiny = T::of(f32::MIN_POSITIVE as f64);
-        let zero = T::zero();
-        let mut var = [zero; LANES];
-        for l in 0..LANES {
-            let mut sum = zero;
-            for c in 0..3 {
-                let raw = light.rgb[c][l];
-                let raw = if raw > zero { raw } else { zero };
-                sum = madd::<T, FMA>(k[c], madd::<T, FMA>(photon, raw, floor), sum);
-            }
-            let m = light.inv_falloff[l];
-            var[l] = sum * m * m;
-        }
-        if let Some(own) = &self.own {
-            // All three channels carry the own sample `v`: the luminance's relative variance
-            // is `v`'s.
-            for l in 0..LANES {
-                let v = light.rgb[own[l] as usize][l];
-                let lum = light.lum[l];
-                let shared = lum * lum * madd::<T, FMA>(photon, v, floor) / (v * v);
-                var[l] = if v > zero { shared } else { var[l] };
-            }
-        }
-        // Only the sums asked for: a least-squares solve has no statistic to test, and the
-        // adaptive screen without a prediction needs no covariance.
-        if w.statistic {
-            for l in 0..LANES {
-                let keep = light.dropped[l] == zero;
-                let lum = light.lum[l];
-                let test = madd::<T, FMA>(relative * lum, lum, var[l]) + tiny;
-                let weight = if keep { T::one() / test } else { zero };
-                let d = [
-                    light.direction[0][l],
-                    light.direction[1][l],
-                    light.direction[2][l],
-                ];
-                let wl = weight * lum;
-                self.q0[l] = madd::<T, FMA>(wl, lum, self.q0[l]);
-                for i in 0..3 {
-                    self.q[i][l] = madd::<T, FMA>(wl, d[i], self.q[i][l]);
-                    for j in i..3 {
-                        let e = SYM[i][j];
-                        self.p[e][l] = madd::<T, FMA>(weight * d[i], d[j], self.p[e][l]);
-                    }
-                }
-            }
-        }
-        if w.predict {
-            for l in 0..LANES {
-                let s2 = if light.dropped[l] == zero {
-                    var[l]
-                } else {
-                    zero
-                };
-                let d = [
-                    light.direction[0][l],
-                    light.direction[1][l],
-                    light.direction[2][l],
-                ];
-                for i in 0..3 {
-                    for j in i..3 {
-                        let e = SYM[i][j];
-                        self.cov[e][l] = madd::<T, FMA>(s2 * d[i], d[j], self.cov[e][l]);
-                    }
-                }
-            }
-        }
-    }
-
-    /// The chi-square statistic at the luminance normal `n` (length `length`) of a fit to
-    /// `used` lights, plus a bound of how far below the exact kernel's it may lie: the
-    /// rounding of the expanded sum (a few units of the kernel's precision times `Q0` per
-    /// light) and the tiled directions (each residual `r_k` moved by at most `d = 3 |N|
-    /// tile_rad`, so the statistic by at most `2 d sqrt(X sum w) + d^2 sum w`, with
-    /// `sum w = trace P` for unit directions).
-    #[inline(always)]
-    fn statistic(&self, n: &[V<T>; 3], used: &V<T>, length: &V<T>) -> V<T> {
-        let (q0, q) = (V(self.q0), [V(self.q[0]), V(self.q[1]), V(self.q[2])]);
-        let p = vectors6(&self.p);
-        let pn = apply(&p, n);
-        let x = q0 - dot(n, &q) * T::of(2.0) + dot(n, &pn);
-        let x = x.max(T::zero());
-        let rounding = (*used * T::of(2.0) + T::of(8.0)) * q0 * T::epsilon();
-        let weight_sum = p[0] + p[3] + p[5];
-        let d = *length * T::of(3.0 * self.weighing.tile_rad);
-        x + rounding + (x * weight_sum).sqrt() * d * T::of(2.0) + d * d * weight_sum
-    }
-
-    /// The predicted error (degrees) of the luminance normal `n` (length `length`) whose
-    /// normal matrix has the inverse `inv`: `predict::expected_angle_error` for the
-    /// covariance `inv (sum s^2 l l^T) inv`, lane by lane.
-    #[inline(always)]
-    fn predicted_deg(&self, inv: &[V<T>; 6], n: &[V<T>; 3], length: &V<T>) -> V<T> {
-        let cov = sandwich(inv, &vectors6(&self.cov));
-        let inv_length = V::splat(T::one()) / *length;
-        let u = [n[0] * inv_length, n[1] * inv_length, n[2] * inv_length];
-        // The tangent-plane covariance's trace and determinant: `tr C - u^T C u` and
-        // `u^T adj(C) u`, over `|N|^2` and `|N|^4`.
-        let cu = apply(&cov, &u);
-        let inv_len2 = inv_length * inv_length;
-        let trace = (cov[0] + cov[3] + cov[5] - dot(&u, &cu)) * inv_len2;
-        let det = dot(&u, &apply(&adjugate(&cov), &u)) * inv_len2 * inv_len2;
-        let half = trace * T::of(0.5);
-        let spread = (half * half - det).max(T::zero()).sqrt();
-        let (l1, l2) = (
-            (half + spread).max(T::zero()),
-            (half - spread).max(T::zero()),
-        );
-        let mut out = [T::zero(); LANES];
-        for l in 0..LANES {
-            let (a, b) = (l1.0[l], l2.0[l]);
-            out[l] = if a > T::zero() {
-                let ratio = b / a;
-                let ratio = if ratio < T::one() { ratio } else { T::one() };
-                T::of((2.0 / std::f64::consts::PI).sqrt()) * a.sqrt() * elliptic_e(ratio)
-            } else {
-                T::zero()
-            };
-        }
-        V(out) * T::of(180.0 / std::f64::consts::PI)
-    }
-}
-
-/// `E(1 - ratio)`, the complete elliptic integral of the second kind (as
-/// `predict::elliptic_e`), by seven steps of the arithmetic-geometric mean: enough for
-/// `ratio` down to 1e-12 (quadratic convergence), without a data-dependent loop.
-#[inline(always)]
-fn elliptic_e<T: Real>(ratio: T) -> T {
-    let half = T::of(0.5);
-    let (mut a, mut b) = (T::one(), ratio.sqrt());
-    let mut sum = half * (T::one() - ratio);
-    let mut weight = half;
-    for _ in 0..7 {
-        let c = half * (a - b);
-        (a, b) = (half * (a + b), (a * b).sqrt());
-        weight = weight + weight;
-        sum += weight * c * c;
-    }
-    T::of(std::f64::consts::FRAC_PI_2) / a * (T::one() - sum)
 }
 
 /// Solves one pixel with the exact kernel (dropping unusable lights).

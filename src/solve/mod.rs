@@ -20,6 +20,7 @@ mod kernel;
 mod lanes;
 mod lights;
 mod measure;
+mod noise_sums;
 mod options;
 mod predict;
 mod robust;

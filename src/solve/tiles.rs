@@ -14,6 +14,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
+use super::lanes::{madd, Real, LANES};
 use super::lights::Illumination;
 use crate::math::angle_deg;
 
@@ -93,6 +94,40 @@ pub struct TileGrid {
 }
 
 impl TileGrid {
+    /// Interpolates the node coefficients to row `y` of a `w x h` image: the value at each
+    /// node column (`row_left`) and the slope toward the next one (`row_slope`).
+    #[inline(always)]
+    pub(super) fn interpolate_row<T: Real>(
+        &self,
+        y: usize,
+        (w, h): (usize, usize),
+        row_left: &mut [T],
+        row_slope: &mut [T],
+    ) {
+        let grid = self;
+        let (jy, ty) = grid.locate(y, h, grid.nodes_y);
+        let jy1 = (jy + 1).min(grid.nodes_y - 1);
+        let stride = grid.stride;
+        // Iterators, not indices: the loops vectorise (indexed, the second ran scalar).
+        for (jx, left) in row_left.chunks_exact_mut(stride).enumerate() {
+            let (a, c) = (grid.node(jx, jy), grid.node(jx, jy1));
+            for ((o, &a), &c) in left.iter_mut().zip(a).zip(c) {
+                *o = T::of(a + (c - a) * ty);
+            }
+        }
+        let left = &*row_left;
+        for (jx, slope) in row_slope.chunks_exact_mut(stride).enumerate() {
+            let jx1 = (jx + 1).min(grid.nodes_x - 1);
+            let span = grid.node_pos(jx1, w) as f64 - grid.node_pos(jx, w) as f64;
+            let inv = T::of(if span > 0.0 { 1.0 / span } else { 0.0 });
+            let this = &left[jx * stride..(jx + 1) * stride];
+            let next = &left[jx1 * stride..(jx1 + 1) * stride];
+            for ((o, &a), &b) in slope.iter_mut().zip(this).zip(next) {
+                *o = (b - a) * inv;
+            }
+        }
+    }
+
     /// Pixel position of node `j` along an axis of `size` pixels.
     #[inline]
     pub fn node_pos(&self, j: usize, size: usize) -> usize {
@@ -265,6 +300,44 @@ pub fn plan(
         }
     }
     None
+}
+
+/// Where a chunk's coefficients come from: a straight line along the row (the chunk lies in
+/// one tile: each value is `left + slope * offset`, computed where it is used), or a table.
+pub(super) enum Source<'a, T> {
+    /// Node values and slopes along the row, and each lane's offset from the node column.
+    Linear {
+        /// The node column's coefficients at this row.
+        left: &'a [T],
+        /// Their change per pixel toward the next node column.
+        slope: &'a [T],
+        /// Each lane's column minus the node column.
+        offset: [T; LANES],
+    },
+    /// Per coefficient, one value per lane.
+    Table(&'a [[T; LANES]]),
+}
+
+impl<T: Real> Source<'_, T> {
+    /// Coefficient `i` for every lane.
+    #[inline(always)]
+    pub(super) fn get<const FMA: bool>(&self, i: usize) -> [T; LANES] {
+        match self {
+            Source::Linear {
+                left,
+                slope,
+                offset,
+            } => {
+                let (a, b) = (left[i], slope[i]);
+                let mut out = *offset;
+                for o in &mut out {
+                    *o = madd::<T, FMA>(b, *o, a);
+                }
+                out
+            }
+            Source::Table(t) => t[i],
+        }
+    }
 }
 
 #[cfg(test)]

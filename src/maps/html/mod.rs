@@ -14,7 +14,11 @@ pub mod frames;
 pub mod images;
 mod loupe;
 pub mod relight;
+mod template;
 mod warnings;
+
+pub use template::escape;
+use template::fill;
 
 use std::path::{Path, PathBuf};
 
@@ -157,14 +161,6 @@ fn img_tag(id: &str, mime: &str, bytes: &[u8], alt: &str) -> String {
         escape(alt),
         images::data_uri(mime, bytes)
     )
-}
-
-/// Text for HTML element content and attribute values.
-pub fn escape(text: &str) -> String {
-    text.replace('&', "&amp;")
-        .replace('<', "&lt;")
-        .replace('>', "&gt;")
-        .replace('"', "&quot;")
 }
 
 struct Parts {
@@ -575,34 +571,6 @@ fn build_page_from(
         ],
     );
     (html, summary)
-}
-
-/// Replaces each `{{KEY}}` of `template` in one pass (inserted text is not scanned again).
-fn fill(template: &str, values: &[(&str, &str)]) -> String {
-    let mut out =
-        String::with_capacity(template.len() + values.iter().map(|(_, v)| v.len()).sum::<usize>());
-    let mut rest = template;
-    while let Some(start) = rest.find("{{") {
-        out.push_str(&rest[..start]);
-        let after = &rest[start + 2..];
-        match after.find("}}").and_then(|end| {
-            values
-                .iter()
-                .find(|(k, _)| *k == &after[..end])
-                .map(|(_, v)| (end, v))
-        }) {
-            Some((end, value)) => {
-                out.push_str(value);
-                rest = &after[end + 2..];
-            }
-            None => {
-                out.push_str("{{");
-                rest = after;
-            }
-        }
-    }
-    out.push_str(rest);
-    out
 }
 
 #[cfg(test)]
