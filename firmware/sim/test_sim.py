@@ -60,7 +60,10 @@ class Sim:
 
     def open(self):
         self.fd = os.open(self.pty_path, os.O_RDWR | os.O_NOCTTY)
-        tty.setraw(self.fd)
+        # TCSANOW, not setraw's default TCSAFLUSH: the firmware may already have sent its
+        # READY banner (the harness keeps the port raw from the start), and a flush would
+        # drop its first bytes.
+        tty.setraw(self.fd, termios.TCSANOW)
         attrs = termios.tcgetattr(self.fd)
         attrs[4] = attrs[5] = termios.B115200
         termios.tcsetattr(self.fd, termios.TCSANOW, attrs)
