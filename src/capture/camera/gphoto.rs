@@ -13,6 +13,8 @@ use crate::capture::manifest::{CameraSettings, ImageInfo};
 use crate::error::{Error, Result};
 use crate::rig::Rig;
 
+/// A tethered camera driven through libgphoto2 (feature `gphoto2`): it reports its ISO,
+/// shutter and aperture, and each shot's RAW file is downloaded into the capture set.
 pub struct Gphoto2Camera {
     camera: gphoto2::Camera,
     model: String,
