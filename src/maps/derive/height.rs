@@ -346,13 +346,16 @@ mod tests {
         assert!(rms < 0.05 * range, "RMS {rms} mm vs range {range} mm");
     }
 
-    #[test]
-    fn a_sphere_on_a_background_is_recovered_over_its_mask() {
-        // A sphere of radius 110 px seen from above, solved within 98 px of its centre
-        // (slopes up to 98 / 50 = 1.96, just below the clamp, as an object's silhouette
-        // reaches); the background is unsolved (flat normal).
-        let (w, h, radius, rim) = (400usize, 380usize, 110.0f64, 98.0f64);
-        let (cx, cy) = (200.0, 190.0);
+    /// A sphere of `radius` px seen from above, centred on a `w x h` grid and solved within
+    /// `rim` px of its centre; the background is unsolved (flat normal). Returns the mask,
+    /// the true height (0 outside) and the normals.
+    fn masked_sphere(
+        w: usize,
+        h: usize,
+        radius: f64,
+        rim: f64,
+    ) -> (Vec<bool>, Vec<f64>, [Plane; 3]) {
+        let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
         let mut solved = vec![false; w * h];
         let mut truth = vec![0.0f64; w * h];
         let mut n = [
@@ -360,14 +363,10 @@ mod tests {
             Plane::new(w, h, 0.0),
             Plane::new(w, h, 1.0),
         ];
-        for r in 0..h {
-            for c in 0..w {
-                let (dx, dy) = (c as f64 - cx, r as f64 - cy);
-                let rho2 = dx * dx + dy * dy;
-                if rho2 >= rim * rim {
-                    continue;
-                }
-                let i = r * w + c;
+        for i in 0..w * h {
+            let (dx, dy) = ((i % w) as f64 - cx, (i / w) as f64 - cy);
+            let rho2 = dx * dx + dy * dy;
+            if rho2 < rim * rim {
                 solved[i] = true;
                 let z = (radius * radius - rho2).sqrt();
                 truth[i] = z;
@@ -377,6 +376,15 @@ mod tests {
                 n[2].data[i] = (z / radius) as f32;
             }
         }
+        (solved, truth, n)
+    }
+
+    #[test]
+    fn a_sphere_on_a_background_is_recovered_over_its_mask() {
+        // A sphere of radius 110 px solved within 98 px of its centre (slopes up to
+        // 98 / 50 = 1.96, just below the clamp, as an object's silhouette reaches).
+        let (w, h, radius, rim) = (400usize, 380usize, 110.0f64, 98.0f64);
+        let (solved, truth, n) = masked_sphere(w, h, radius, rim);
         let rms_inside = |z: &Plane| -> f64 {
             let picked: Vec<usize> = (0..w * h).filter(|&i| solved[i]).collect();
             let count = picked.len() as f64;
@@ -418,24 +426,7 @@ mod tests {
         // stops on the residual, which says little about the smoothest error modes; this
         // checks that the stop is close to the surface the iteration converges to.
         let (w, h, radius, rim) = (360usize, 340usize, 110.0f64, 108.0f64);
-        let (cx, cy) = (180.0, 170.0);
-        let mut solved = vec![false; w * h];
-        let mut n = [
-            Plane::new(w, h, 0.0),
-            Plane::new(w, h, 0.0),
-            Plane::new(w, h, 1.0),
-        ];
-        for i in 0..w * h {
-            let (dx, dy) = ((i % w) as f64 - cx, (i / w) as f64 - cy);
-            let rho2 = dx * dx + dy * dy;
-            if rho2 < rim * rim {
-                solved[i] = true;
-                let z = (radius * radius - rho2).sqrt();
-                n[0].data[i] = (dx / radius) as f32;
-                n[1].data[i] = (-dy / radius) as f32;
-                n[2].data[i] = (z / radius) as f32;
-            }
-        }
+        let (solved, _, n) = masked_sphere(w, h, radius, rim);
         let (z, masked) = integrate_over(&n, &solved, 1.0, Boundary::Mirrored);
         // The converged surface of the same problem: from zero, to a residual 10^6 smaller.
         let (p, q) = slopes(&n);
