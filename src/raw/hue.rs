@@ -12,6 +12,7 @@
 
 use rayon::prelude::*;
 
+use super::chroma::smooth_chroma;
 use super::mosaic::GREEN;
 use super::shading::SiteFit;
 use crate::plane::RgbPlanes;
@@ -26,7 +27,8 @@ const CONTINUITY_SCALE: f32 = 0.1;
 const NORMAL_WEIGHT: f32 = (CONTINUITY_SCALE / 0.2) * (CONTINUITY_SCALE / 0.2);
 
 /// Per pixel, each channel's ratio to the pixel's own channel (1 for the own channel), from
-/// `reflectance` laid out as `pattern`. A pixel whose own reflectance is not positive gets
+/// `reflectance` laid out as `pattern`, then averaged over the pixels of the same chroma around
+/// (see [`smooth_chroma`]). A pixel whose own reflectance is not positive gets
 /// ratios of 0 (it is black: its missing channels are 0 too).
 pub fn colour_ratios(
     width: usize,
@@ -66,6 +68,7 @@ pub fn colour_ratios(
             }
         }
     });
+    smooth_chroma(pattern, &mut out);
     out
 }
 

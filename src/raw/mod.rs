@@ -8,6 +8,7 @@
 //! digital numbers of psscan's `dn16` sets ([`DnImage`]). psscan writes DNG too ([`encode_dng`]),
 //! so synthetic capture sets take the path real RAW files take.
 
+mod chroma;
 mod colour;
 mod decode;
 mod develop;

@@ -14,7 +14,8 @@
 //!   which come from the whole stack (they are the same under every light). Each pixel's
 //!   shading, which is what photometric stereo reads, is therefore its own, never its
 //!   neighbours'. With the lights' shading vectors the ratios come from every site's fitted
-//!   albedo, interpolated along the pixel's own material (`shading`, `hue`); without them from
+//!   albedo, interpolated along the pixel's own material (`shading`, `hue`) and averaged over
+//!   the pixels of the same chroma around (`chroma`); without them from
 //!   a plain [`bilinear`] demosaic of the stack's sum.
 //!
 //! Values are linear: `(sample - black[site]) / (white - black[site])`, 1.0 at the white level.
@@ -93,7 +94,8 @@ impl Resolution {
                 "shading-preserving demosaic: each pixel's own CFA sample, the missing channels \
                  scaled from it by the pixel's colour ratios from the whole stack (each CFA \
                  site's albedo fitted under the rig's lights, interpolated along the pixel's own \
-                 material; without the lights, a bilinear demosaic of the white-balanced sum of \
+                 material, the chroma then averaged over the pixels of the same chroma around; \
+                 without the lights, a bilinear demosaic of the white-balanced sum of \
                  all frames)"
             }
         }
