@@ -356,3 +356,40 @@ fn no_source_file_is_over_600_lines() {
         .collect();
     assert!(long.is_empty(), "split these: {long:?}");
 }
+
+/// `make test`'s feature run builds only the test binaries the Makefile lists in
+/// `FEATURE_TESTS`; a test file with OpenCV or gphoto2 tests missing from that list would
+/// never run anywhere.
+#[test]
+fn every_test_file_with_feature_tests_is_in_the_makefiles_feature_run() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let makefile = std::fs::read_to_string(root.join("Makefile")).unwrap();
+    let listed: BTreeSet<String> = makefile
+        .split_whitespace()
+        .collect::<Vec<_>>()
+        .windows(2)
+        .filter(|pair| pair[0] == "--test")
+        .map(|pair| pair[1].to_string())
+        .collect();
+    for file in std::fs::read_dir(root.join("tests")).unwrap() {
+        let path = file.unwrap().path();
+        // This file names the markers itself.
+        if path.extension().is_none_or(|e| e != "rs") || path.ends_with("layering.rs") {
+            continue;
+        }
+        let text = std::fs::read_to_string(&path).unwrap();
+        let has_feature_tests = [
+            "fn opencv_",
+            "fn gphoto",
+            "feature = \"opencv\"",
+            "feature = \"gphoto2\"",
+        ]
+        .iter()
+        .any(|marker| text.contains(marker));
+        let name = path.file_stem().unwrap().to_string_lossy().to_string();
+        assert!(
+            !has_feature_tests || listed.contains(&name),
+            "tests/{name}.rs has OpenCV or gphoto2 tests but is not in the Makefile's FEATURE_TESTS"
+        );
+    }
+}

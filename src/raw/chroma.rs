@@ -1,6 +1,6 @@
 //! Averaging every pixel's colour ratios over the pixels of its own chroma around it.
 //!
-//! The ratios [`colour_ratios`](super::hue::colour_ratios) gives a pixel come from its two to
+//! The ratios `hue::colour_ratios` gives a pixel come from its two to
 //! four nearest sites of each missing channel: each such site's noise (a few percent in the
 //! dark channels, albedo about 0.05) goes straight into the pixel's ratio. Within one material
 //! the chroma (the colour with its brightness divided out) is the same at every pixel, while
