@@ -393,3 +393,43 @@ fn every_test_file_with_feature_tests_is_in_the_makefiles_feature_run() {
         );
     }
 }
+
+/// The feature run builds no unit tests of the library, so a module compiled only with a
+/// feature (`gphoto2`, `opencv`) must not hold any: they would never run.
+#[test]
+fn no_feature_gated_module_holds_unit_tests() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    for path in rust_files(&src) {
+        let text = std::fs::read_to_string(&path).unwrap();
+        let lines: Vec<&str> = text.lines().map(str::trim).collect();
+        for pair in lines.windows(2) {
+            let gated = pair[0].starts_with("#[cfg(feature = \"")
+                && (pair[1].starts_with("pub mod ") || pair[1].starts_with("mod "));
+            if !gated {
+                continue;
+            }
+            let name = pair[1]
+                .trim_start_matches("pub ")
+                .trim_start_matches("mod ");
+            let name = name.trim_end_matches(';').trim_end_matches(" {").trim();
+            let dir = path.parent().unwrap();
+            // The module's body: inline after the declaration, or its own file.
+            let body = if pair[1].ends_with('{') {
+                text.split(pair[1]).nth(1).unwrap_or_default().to_string()
+            } else {
+                [
+                    dir.join(format!("{name}.rs")),
+                    dir.join(name).join("mod.rs"),
+                ]
+                .iter()
+                .find_map(|p| std::fs::read_to_string(p).ok())
+                .unwrap_or_default()
+            };
+            assert!(
+                !body.contains("#[test]"),
+                "{}: the feature-gated module {name} holds unit tests, which make test never runs",
+                path.display()
+            );
+        }
+    }
+}

@@ -6,6 +6,7 @@
 use std::path::Path;
 use std::time::Duration;
 
+use super::settings_text::{parse_aperture, parse_iso, parse_shutter};
 use super::unix_now_us;
 use super::{extension_of, raw_image_info, Camera, Shot};
 use crate::capture::interrupt::Interrupt;
@@ -81,27 +82,6 @@ pub fn gp_error(doing: &str, e: gphoto2::Error) -> Error {
     Error::device(DEVICE, message)
 }
 
-/// ISO from a camera's text (`100`, `ISO 100`); `Auto` and the like give `None`.
-pub fn parse_iso(text: &str) -> Option<u32> {
-    text.trim().trim_start_matches("ISO").trim().parse().ok()
-}
-
-/// Shutter time in seconds from `1/125`, `0.5`, `2`, `2s`, `1/125s`; `bulb` gives `None`.
-pub fn parse_shutter(text: &str) -> Option<f64> {
-    let t = text.trim().trim_end_matches('s').trim();
-    let value = match t.split_once('/') {
-        Some((n, d)) => n.trim().parse::<f64>().ok()? / d.trim().parse::<f64>().ok()?,
-        None => t.parse::<f64>().ok()?,
-    };
-    (value.is_finite() && value > 0.0).then_some(value)
-}
-
-/// Aperture f-number from `f/8`, `f/5.6`, `8`, `5.6`.
-pub fn parse_aperture(text: &str) -> Option<f64> {
-    let t = text.trim().trim_start_matches("f/").trim_start_matches('f');
-    t.parse::<f64>().ok().filter(|v| v.is_finite() && *v > 0.0)
-}
-
 impl Camera for Gphoto2Camera {
     fn name(&self) -> String {
         format!("{DEVICE}: {}", self.model)
@@ -154,42 +134,5 @@ impl Camera for Gphoto2Camera {
             lit: None,
             fired_unix_us,
         })
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn settings_text_parses() {
-        assert_eq!(parse_iso("100"), Some(100));
-        assert_eq!(parse_iso("ISO 400"), Some(400));
-        assert_eq!(parse_iso("Auto"), None);
-        assert_eq!(parse_shutter("1/125"), Some(1.0 / 125.0));
-        assert_eq!(parse_shutter("2s"), Some(2.0));
-        assert_eq!(parse_shutter("0.5"), Some(0.5));
-        assert_eq!(parse_shutter("bulb"), None);
-        assert_eq!(parse_aperture("f/5.6"), Some(5.6));
-        assert_eq!(parse_aperture("8"), Some(8.0));
-        assert_eq!(parse_aperture("implicit auto"), None);
-    }
-
-    /// Runs libgphoto2 for real: on a machine without a camera (CI), opening must fail with
-    /// a psscan error that says no camera was found, not a bare libgphoto2 code.
-    #[test]
-    fn without_a_camera_the_error_says_so() {
-        match Gphoto2Camera::open(Duration::from_secs(5)) {
-            Ok(camera) => eprintln!(
-                "a camera is connected ({}); nothing to check",
-                camera.name()
-            ),
-            Err(e) => {
-                let text = e.to_string();
-                assert!(text.starts_with(DEVICE), "{text}");
-                assert!(text.contains("no camera found"), "{text}");
-                assert!(text.contains("libgphoto2:"), "{text}");
-            }
-        }
     }
 }

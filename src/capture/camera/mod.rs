@@ -5,6 +5,7 @@
 pub mod command;
 #[cfg(feature = "gphoto2")]
 pub mod gphoto;
+pub mod settings_text;
 
 use std::path::Path;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
