@@ -2,6 +2,8 @@
 //! order with explicit width and height (DESIGN.md: "masks are explicit, never NaN-as-mask"),
 //! and `Frames`, one RGB image per light, which is what decoding produces and solving consumes.
 
+use rayon::prelude::*;
+
 use crate::error::{Error, Result};
 
 /// One channel of an image: `width * height` samples, row-major, row 0 at the top.
@@ -216,6 +218,21 @@ impl RgbPlanes {
     /// Height in pixels (all three planes share it).
     pub fn height(&self) -> usize {
         self.r.height
+    }
+
+    /// Calls `row(y, [r, g, b])` with row `y` of each plane to write, rows in parallel.
+    pub fn par_rows_mut<F>(&mut self, row: F)
+    where
+        F: Fn(usize, [&mut [f32]; 3]) + Sync + Send,
+    {
+        let w = self.width();
+        self.r
+            .data
+            .par_chunks_mut(w)
+            .zip(self.g.data.par_chunks_mut(w))
+            .zip(self.b.data.par_chunks_mut(w))
+            .enumerate()
+            .for_each(|(y, ((r, g), b))| row(y, [r, g, b]));
     }
 }
 

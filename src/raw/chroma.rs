@@ -12,6 +12,7 @@
 
 use rayon::prelude::*;
 
+use super::mosaic::mirror;
 use crate::plane::RgbPlanes;
 
 /// Half width of the window the chroma is averaged over (5 x 5 pixels).
@@ -55,48 +56,41 @@ pub fn smooth_chroma(pattern: [[u8; 2]; 2], ratios: &mut RgbPlanes) {
     // same-material pair's d^2; a noise-free image (variance 0) averages only identical chroma.
     let inv = 1.0 / (2.0 * CHI2_2_99 * variance).max(f32::MIN_POSITIVE);
     let at = |x: isize, y: isize| chroma[mirror(y, h) * w + mirror(x, w)];
-    let [r, g, b] = [&mut ratios.r, &mut ratios.g, &mut ratios.b];
-    r.data
-        .par_chunks_mut(w)
-        .zip(g.data.par_chunks_mut(w))
-        .zip(b.data.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(y, ((r, g), b))| {
-            let rows = [r, g, b];
-            for x in 0..w {
-                let centre = chroma[y * w + x];
-                if centre[0].is_nan() {
-                    continue;
-                }
-                let (mut sum, mut weights) = ([0.0f32; 3], 0.0f32);
-                for dy in -RADIUS..=RADIUS {
-                    for dx in -RADIUS..=RADIUS {
-                        let q = at(x as isize + dx, y as isize + dy);
-                        let d2 = (q[0] - centre[0]).powi(2)
-                            + (q[1] - centre[1]).powi(2)
-                            + (q[2] - centre[2]).powi(2);
-                        // A black neighbour's NaN fails this test too.
-                        let e = d2 * inv;
-                        if e < CUTOFF {
-                            let weight = (-e).exp();
-                            for c in 0..3 {
-                                sum[c] += weight * q[c];
-                            }
-                            weights += weight;
+    ratios.par_rows_mut(|y, rows| {
+        for x in 0..w {
+            let centre = chroma[y * w + x];
+            if centre[0].is_nan() {
+                continue;
+            }
+            let (mut sum, mut weights) = ([0.0f32; 3], 0.0f32);
+            for dy in -RADIUS..=RADIUS {
+                for dx in -RADIUS..=RADIUS {
+                    let q = at(x as isize + dx, y as isize + dy);
+                    let d2 = (q[0] - centre[0]).powi(2)
+                        + (q[1] - centre[1]).powi(2)
+                        + (q[2] - centre[2]).powi(2);
+                    // A black neighbour's NaN fails this test too.
+                    let e = d2 * inv;
+                    if e < CUTOFF {
+                        let weight = (-e).exp();
+                        for c in 0..3 {
+                            sum[c] += weight * q[c];
                         }
+                        weights += weight;
                     }
                 }
-                let own = pattern[y % 2][x % 2] as usize;
-                let mean = sum.map(|s| s / weights);
-                for c in 0..3 {
-                    rows[c][x] = if c == own {
-                        1.0
-                    } else {
-                        (mean[c] - mean[own]).exp()
-                    };
-                }
             }
-        });
+            let own = pattern[y % 2][x % 2] as usize;
+            let mean = sum.map(|s| s / weights);
+            for c in 0..3 {
+                rows[c][x] = if c == own {
+                    1.0
+                } else {
+                    (mean[c] - mean[own]).exp()
+                };
+            }
+        }
+    });
 }
 
 /// The variance per degree of freedom of the difference of two pixels' log chroma where they
@@ -122,15 +116,4 @@ fn chroma_noise(w: usize, h: usize, chroma: &[[f32; 3]]) -> f32 {
     let mid = d2.len() / 2;
     let (_, median, _) = d2.select_nth_unstable_by(mid, f32::total_cmp);
     *median / (2.0 * std::f32::consts::LN_2)
-}
-
-/// Mirrors an index about the image's border.
-fn mirror(i: isize, n: usize) -> usize {
-    if i < 0 {
-        ((-i) as usize).min(n - 1)
-    } else if i as usize >= n {
-        (2 * (n - 1)).saturating_sub(i as usize)
-    } else {
-        i as usize
-    }
 }

@@ -13,7 +13,7 @@
 use rayon::prelude::*;
 
 use super::chroma::smooth_chroma;
-use super::mosaic::GREEN;
+use super::mosaic::{mirror, GREEN};
 use super::shading::SiteFit;
 use crate::plane::RgbPlanes;
 
@@ -45,14 +45,7 @@ pub fn colour_ratios(
         let i = mirror(y, h) * w + mirror(x, w);
         (&sites[i], logs[i])
     };
-    let rows = out
-        .r
-        .data
-        .par_chunks_mut(w)
-        .zip(out.g.data.par_chunks_mut(w))
-        .zip(out.b.data.par_chunks_mut(w));
-    rows.enumerate().for_each(|(y, ((r, g), b))| {
-        let mut planes = [r, g, b];
+    out.par_rows_mut(|y, mut planes| {
         for x in 0..w {
             let own = pattern[y % 2][x % 2] as usize;
             let own_site = at(x as isize, y as isize);
@@ -70,17 +63,6 @@ pub fn colour_ratios(
     });
     smooth_chroma(pattern, &mut out);
     out
-}
-
-/// Mirrors an index about the mosaic's border (keeps the CFA phase).
-fn mirror(i: isize, n: usize) -> usize {
-    if i < 0 {
-        (-i) as usize
-    } else if i as usize >= n {
-        2 * (n - 1) - i as usize
-    } else {
-        i as usize
-    }
 }
 
 /// Offsets of the nearest sites of `channel` around `(x, y)`: two (left/right or up/down) or

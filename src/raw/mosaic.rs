@@ -322,6 +322,18 @@ impl LinearMosaic {
     }
 }
 
+/// Mirrors an index about the border of a line of `n` samples (keeps the CFA phase where
+/// `n` allows one); indices further out than the line is long stay on the line.
+pub(super) fn mirror(i: isize, n: usize) -> usize {
+    if i < 0 {
+        ((-i) as usize).min(n - 1)
+    } else if i as usize >= n {
+        (2 * (n - 1)).saturating_sub(i as usize)
+    } else {
+        i as usize
+    }
+}
+
 /// Bilinear demosaic of `values` laid out as `pattern`: each pixel keeps its own sample for
 /// its own channel; a missing channel is the mean of the nearest samples of that channel (the
 /// two horizontal or the two vertical neighbours at a G site; the four edge neighbours for G
@@ -330,48 +342,32 @@ impl LinearMosaic {
 pub fn bilinear(width: usize, height: usize, pattern: [[u8; 2]; 2], values: &[f32]) -> RgbPlanes {
     let (w, h) = (width, height);
     let mut rgb = RgbPlanes::new(w, h);
-    let mirror = |i: isize, n: usize| -> usize {
-        if i < 0 {
-            (-i) as usize
-        } else if i as usize >= n {
-            2 * (n - 1) - i as usize
-        } else {
-            i as usize
-        }
-    };
-    rgb.r
-        .data
-        .par_chunks_mut(w)
-        .zip(rgb.g.data.par_chunks_mut(w))
-        .zip(rgb.b.data.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(y, ((r, g), b))| {
-            let row = |yy: usize| &values[yy * w..(yy + 1) * w];
-            let (up, mid, down) = (
-                row(mirror(y as isize - 1, h)),
-                row(y),
-                row(mirror(y as isize + 1, h)),
-            );
-            let out = [r, g, b];
-            let site_row = y % 2;
-            for x in 0..w {
-                let xm = mirror(x as isize - 1, w);
-                let xp = mirror(x as isize + 1, w);
-                let own = pattern[site_row][x % 2] as usize;
-                let horizontal = 0.5 * (mid[xm] + mid[xp]);
-                let vertical = 0.5 * (up[x] + down[x]);
-                out[own][x] = mid[x];
-                if own == GREEN as usize {
-                    let across = pattern[site_row][(x + 1) % 2] as usize;
-                    let along = pattern[(site_row + 1) % 2][x % 2] as usize;
-                    out[across][x] = horizontal;
-                    out[along][x] = vertical;
-                } else {
-                    out[GREEN as usize][x] = 0.5 * (horizontal + vertical);
-                    out[2 - own][x] = 0.25 * (up[xm] + up[xp] + down[xm] + down[xp]);
-                }
+    rgb.par_rows_mut(|y, out| {
+        let row = |yy: usize| &values[yy * w..(yy + 1) * w];
+        let (up, mid, down) = (
+            row(mirror(y as isize - 1, h)),
+            row(y),
+            row(mirror(y as isize + 1, h)),
+        );
+        let site_row = y % 2;
+        for x in 0..w {
+            let xm = mirror(x as isize - 1, w);
+            let xp = mirror(x as isize + 1, w);
+            let own = pattern[site_row][x % 2] as usize;
+            let horizontal = 0.5 * (mid[xm] + mid[xp]);
+            let vertical = 0.5 * (up[x] + down[x]);
+            out[own][x] = mid[x];
+            if own == GREEN as usize {
+                let across = pattern[site_row][(x + 1) % 2] as usize;
+                let along = pattern[(site_row + 1) % 2][x % 2] as usize;
+                out[across][x] = horizontal;
+                out[along][x] = vertical;
+            } else {
+                out[GREEN as usize][x] = 0.5 * (horizontal + vertical);
+                out[2 - own][x] = 0.25 * (up[xm] + up[xp] + down[xm] + down[xp]);
             }
-        });
+        }
+    });
     rgb
 }
 

@@ -128,27 +128,20 @@ fn develop_full(
         .zip(colours)
         .map(|(frame, colour)| {
             let mut rgb = RgbPlanes::new(w, h);
-            rgb.r
-                .data
-                .par_chunks_mut(w)
-                .zip(rgb.g.data.par_chunks_mut(w))
-                .zip(rgb.b.data.par_chunks_mut(w))
-                .enumerate()
-                .for_each(|(y, ((r, g), b))| {
-                    let out = [r, g, b];
-                    for x in 0..w {
-                        let i = y * w + x;
-                        let own = pattern[y % 2][x % 2] as usize;
-                        let v = frame.values[i];
-                        for c in 0..3 {
-                            out[c][x] = if c == own {
-                                v
-                            } else {
-                                v * ratios[c].data[i] * colour[c] / colour[own]
-                            };
-                        }
+            rgb.par_rows_mut(|y, out| {
+                for x in 0..w {
+                    let i = y * w + x;
+                    let own = pattern[y % 2][x % 2] as usize;
+                    let v = frame.values[i];
+                    for c in 0..3 {
+                        out[c][x] = if c == own {
+                            v
+                        } else {
+                            v * ratios[c].data[i] * colour[c] / colour[own]
+                        };
                     }
-                });
+                }
+            });
             LightFrame {
                 rgb,
                 saturated: Some(Mask {
@@ -171,29 +164,22 @@ fn bilinear_ratios(
     floor: f32,
 ) -> RgbPlanes {
     let mut totals = bilinear(w, h, pattern, sum);
-    let [r, g, b] = [&mut totals.r, &mut totals.g, &mut totals.b];
-    r.data
-        .par_chunks_mut(w)
-        .zip(g.data.par_chunks_mut(w))
-        .zip(b.data.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(y, ((r, g), b))| {
-            let rows = [r, g, b];
-            for x in 0..w {
-                let own = pattern[y % 2][x % 2] as usize;
-                let own_total = rows[own][x];
-                for c in 0..3 {
-                    if c != own {
-                        rows[c][x] = if own_total > floor {
-                            rows[c][x] / own_total
-                        } else {
-                            0.0
-                        };
-                    }
+    totals.par_rows_mut(|y, rows| {
+        for x in 0..w {
+            let own = pattern[y % 2][x % 2] as usize;
+            let own_total = rows[own][x];
+            for c in 0..3 {
+                if c != own {
+                    rows[c][x] = if own_total > floor {
+                        rows[c][x] / own_total
+                    } else {
+                        0.0
+                    };
                 }
-                rows[own][x] = 1.0;
             }
-        });
+            rows[own][x] = 1.0;
+        }
+    });
     totals
 }
 

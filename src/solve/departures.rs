@@ -141,7 +141,8 @@ fn trimmed_start(
 
 /// The data-scaled fit of `measurements`, or `None` where the sensor model explains the
 /// residuals (or no robust start exists): the caller's noise-model rejection decides there.
-/// On success leaves the kept lights in `measurements`; `all` is a buffer.
+/// On success leaves the kept lights in `measurements`, on `None` every light as it came;
+/// `all` is a buffer.
 pub(super) fn fit(
     tuning: &Departures,
     measurements: &mut Vec<Measurement>,

@@ -162,10 +162,6 @@ fn noise_or_data_scaled(
 ) -> Fit {
     let chi = context.chi;
     let condition = least_squares.condition;
-    let mut usable = std::mem::take(&mut buffers.noise_usable);
-    usable.clear();
-    usable.extend_from_slice(measurements);
-    let usable_count = usable.len();
     let data_scaled = departures::fit(
         &departures::Departures::default(),
         measurements,
@@ -175,13 +171,18 @@ fn noise_or_data_scaled(
         &least_squares.n_lum,
     );
     if let Some(fit) = data_scaled {
-        buffers.noise_usable = usable;
         return fit;
     }
+    // The data-scaled fit declined and left every usable light in `measurements`: keep a copy
+    // while the rejection drops lights.
+    let mut usable = std::mem::take(&mut buffers.noise_usable);
+    usable.clear();
+    usable.extend_from_slice(measurements);
+    let usable_count = usable.len();
     let fit = match reject_outliers(context, measurements, buffers, start) {
         Some(weighted)
-            if !lit_behind_surface(&usable, &weighted.n_lum, context.options.outlier_sigma)
-                || !chi.accepts_statistic(weighted.chi2, measurements.len()) =>
+            if !chi.accepts_statistic(weighted.chi2, measurements.len())
+                || !lit_behind_surface(&usable, &weighted.n_lum, context.options.outlier_sigma) =>
         {
             let rejected = measurements.len() < usable_count;
             Some(weighted.into_fit(chi, measurements, condition, rejected))
