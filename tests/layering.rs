@@ -433,3 +433,55 @@ fn no_feature_gated_module_holds_unit_tests() {
         }
     }
 }
+
+/// The features cargo resolves for each crate, one `name version features` line per crate, as
+/// `cargo tree` prints them with the given dependency kinds.
+fn resolved_features(edges: &str) -> BTreeMap<String, String> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let output = std::process::Command::new(cargo)
+        .args(["tree", "--offline", "--prefix", "none", "-e", edges])
+        .args(["-f", "{p} | {f}"])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("cargo tree runs");
+    assert!(
+        output.status.success(),
+        "cargo tree failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8(output.stdout)
+        .expect("cargo tree prints UTF-8")
+        .lines()
+        .filter_map(|line| line.split_once(" | "))
+        .map(|(package, features)| {
+            (
+                package.trim_end_matches(" (*)").to_string(),
+                features.trim_end_matches(" (*)").to_string(),
+            )
+        })
+        .collect()
+}
+
+/// `make eval` and `make demo` run `cargo run --release` after `make test`'s `cargo test
+/// --release`. They share one build only when the dev-dependencies turn on no feature of a
+/// crate the program also uses; otherwise every crate from that one up (rawler, image,
+/// psscan) compiles a second time, minutes of CI. Cargo.toml names such crates with the
+/// dev-dependencies' features.
+#[test]
+fn the_test_build_and_the_program_build_resolve_the_same_features() {
+    let program = resolved_features("normal,build");
+    let with_tests = resolved_features("normal,build,dev");
+    let differing: Vec<String> = program
+        .iter()
+        .filter_map(|(package, features)| {
+            let tested = with_tests.get(package)?;
+            (tested != features).then(|| format!("{package}: [{features}] vs [{tested}] in tests"))
+        })
+        .collect();
+    assert!(
+        differing.is_empty(),
+        "the dev-dependencies change these crates' features; name them in Cargo.toml's \
+         [dependencies] with the test build's features:\n{}",
+        differing.join("\n")
+    );
+}
