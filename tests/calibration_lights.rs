@@ -78,3 +78,109 @@ fn led_positions_converge_from_hand_measurements_off_by_three_centimetres() {
         check.max_deg
     );
 }
+
+/// The wizard's last step over a source whose white sheet is photographed under `truth`
+/// (the rig as built) while the wizard's calibration holds the hand-measured LEDs.
+mod flatness_step {
+    use super::{REFLECTANCE, STEP};
+    use psscan::calibration::bundle::INDEX_FILE;
+    use psscan::calibration::wizard::{Step, TargetSource, Wizard, STATE_FILE};
+    use psscan::error::{Error, Result};
+    use psscan::plane::{Frames, GrayImage, SensorWindow};
+    use psscan::progress::{Progress, Silent};
+    use psscan::raw::Mosaic;
+    use psscan::rig::{Board, ChartDescription, Rig};
+    use psscan::synth::targets;
+
+    struct Sheet {
+        truth: Rig,
+    }
+
+    impl TargetSource for Sheet {
+        fn chessboard_view(&mut self, _: usize) -> Result<GrayImage> {
+            Err(Error::Invalid("not in this test".into()))
+        }
+        fn table_view(&mut self) -> Result<GrayImage> {
+            Err(Error::Invalid("not in this test".into()))
+        }
+        fn gray_chart(
+            &mut self,
+            _: &ChartDescription,
+            _: [f64; 4],
+            _: &dyn Progress,
+        ) -> Result<(Vec<Mosaic>, SensorWindow)> {
+            Err(Error::Invalid("not in this test".into()))
+        }
+        fn white_sheet(&mut self, _: &str, exposures: usize, _: &dyn Progress) -> Result<Frames> {
+            Ok(targets::white_sheet_frames(
+                &self.truth,
+                STEP,
+                REFLECTANCE,
+                0.02,
+                exposures,
+                7,
+            ))
+        }
+        fn view_window(&self) -> SensorWindow {
+            let (w, h) = targets::binned_size(&self.truth, STEP);
+            SensorWindow::centred(
+                self.truth.camera.width as usize,
+                self.truth.camera.height as usize,
+                w,
+                h,
+                STEP,
+            )
+        }
+    }
+
+    /// The wizard at its flatness step with the hand rig as its calibration, over a sheet
+    /// photographed under `truth`: what `finish` returned, and the folder.
+    fn finish(truth: Rig) -> (Result<()>, Wizard, tempfile::TempDir) {
+        let tmp = tempfile::tempdir().unwrap();
+        let mut hand = Rig::default_rig();
+        hand.camera = truth.camera.clone();
+        let board = Board::parse("9x6", 15.0).unwrap();
+        let (mut wiz, _) = Wizard::open(tmp.path(), hand, "t", board).unwrap();
+        wiz.state.step = Step::Flatness;
+        wiz.state.calibration.sheet_reflectance = Some(REFLECTANCE);
+        let outcome = wiz.finish(&mut Sheet { truth }, &Silent).map(|_| ());
+        (outcome, wiz, tmp)
+    }
+
+    /// LEDs 3 cm from where the calibration puts them tilt the re-solved sheet by degrees: the
+    /// check fails, the error says so and that no bundle was written, no bundle index exists,
+    /// and the saved state records the failed check and sends the session back to the white
+    /// sheet.
+    #[test]
+    fn a_sheet_that_is_not_flat_writes_no_bundle_and_sends_the_wizard_back() {
+        let truth = targets::as_built(&Rig::default_rig(), 0.03, 5);
+        let (outcome, wiz, tmp) = finish(truth);
+        let message = outcome
+            .expect_err("a non-flat sheet fails the step")
+            .to_string();
+        println!("{message}");
+        assert!(
+            message.contains("flatness check failed") && message.contains("no bundle was written"),
+            "{message}"
+        );
+        assert!(!tmp.path().join(INDEX_FILE).exists(), "no bundle index");
+        let state = std::fs::read_to_string(tmp.path().join(STATE_FILE)).unwrap();
+        assert!(state.contains("step = \"white-sheet\""), "{state}");
+        let check = wiz.state.calibration.flatness.as_ref().unwrap();
+        assert!(!check.flat && check.max_deg > 1.0, "{}", check.max_deg);
+        assert!(message.contains(&format!("{:.3} deg", check.max_deg)));
+    }
+
+    /// The control: the sheet photographed under the rig the calibration holds comes out flat
+    /// and the bundle is written.
+    #[test]
+    fn a_flat_sheet_writes_the_bundle() {
+        let mut truth = Rig::default_rig();
+        truth.camera = Rig::default_rig().camera;
+        let (outcome, wiz, tmp) = finish(truth);
+        outcome.expect("a flat sheet finishes the wizard");
+        assert!(tmp.path().join(INDEX_FILE).exists());
+        assert_eq!(wiz.state.step, Step::Done);
+        assert!(wiz.state.calibration.flatness.as_ref().unwrap().flat);
+    }
+}

@@ -415,7 +415,8 @@ impl Wizard {
 
     /// The final check: the sheet re-solved with the calibration, as many exposures averaged
     /// as the noise model asks for; the gray chart read again with the fitted LEDs' shading;
-    /// then the bundle is written.
+    /// then the bundle is written. A sheet that does not come out flat is an error and writes
+    /// no bundle (see `reject_flatness`).
     pub fn finish(
         &mut self,
         source: &mut dyn TargetSource,
@@ -438,8 +439,11 @@ impl Wizard {
         .min(64);
         let frames = source.white_sheet("check", n, progress)?;
         let check = whitesheet::flatness(&frames, &rig, noise, n, progress)?;
-        let sheet = whitesheet::measure(&frames, &rig, reflectance, 8)?;
         self.state.calibration.flatness = Some(check.clone());
+        if !check.flat {
+            return Err(self.reject_flatness(&check));
+        }
+        let sheet = whitesheet::measure(&frames, &rig, reflectance, 8)?;
         // With the LEDs where the fit put them the chart's shading is known far better: its
         // linearity report is read again, and that one goes into the bundle.
         let chart = match self.state.calibration.gray_chart {
@@ -463,6 +467,35 @@ impl Wizard {
         self.state.step = Step::Done;
         self.save()?;
         Ok((check, chart, index))
+    }
+}
+
+impl Wizard {
+    /// A sheet that does not come out flat means the calibration does not explain the
+    /// photographs (LEDs fitted to a wrong minimum, a sheet that lifted or moved): no bundle
+    /// is written. The failed check stays in the state as the record of why, the LED fit is
+    /// dropped, and the session goes back to the white-sheet step, so the next run takes the
+    /// sheet again and fits the LEDs from the hand measurements.
+    fn reject_flatness(&mut self, check: &whitesheet::Flatness) -> Error {
+        self.state.calibration.lights = None;
+        self.state.step = Step::WhiteSheet;
+        let saved = match self.save() {
+            Ok(()) => String::new(),
+            Err(e) => format!(" (and the state could not be saved: {e})"),
+        };
+        Error::Invalid(format!(
+            "the flatness check failed: the white sheet re-solved with the calibration has a \
+             normal {:.3} deg from straight up (limit {} deg; 16x16-block mean at most {:.3} \
+             deg, noise alone predicts up to {:.3} deg with {} exposures averaged), so the \
+             calibration does not explain the photographs and no bundle was written{saved}. \
+             Check that the sheet lies flat and did not move, then run the same command again: \
+             the white-sheet step is taken again and the LEDs are fitted afresh",
+            check.max_deg,
+            check.tolerance_deg,
+            check.block_max_deg,
+            check.predicted_noise_max_deg,
+            check.exposures,
+        ))
     }
 }
 

