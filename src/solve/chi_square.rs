@@ -57,20 +57,23 @@ impl ChiSquare {
         k * (1.0 - v + self.sigma * v.sqrt()).powi(3)
     }
 
-    /// True when a Lambertian surface explains the measurements within the noise (always,
+    /// Whether a Lambertian surface explains the measurements within the noise (always,
     /// without redundant lights: three lights fit any normal exactly). `n_lum` is the
     /// least-squares fit: where its statistic passes, so does the minimum; otherwise the test
     /// is decided on the weighted fit, the one whose statistic follows the chi-square
     /// distribution. (The unweighted fit's statistic is inflated where the lights' variances
     /// differ, so tested on it far more clean pixels fail than the test's false-alarm rate:
-    /// docs/solve.md.)
-    pub fn accepts(&self, measurements: &[Measurement], n_lum: &Vector3<f64>) -> bool {
+    /// docs/solve.md.) A failing pixel's weighted fit comes back for the robust fit to start
+    /// from.
+    pub fn screen(&self, measurements: &[Measurement], n_lum: &Vector3<f64>) -> Screened {
         let lights = measurements.len();
         if lights <= 3 || self.accepts_statistic(self.statistic(measurements, n_lum), lights) {
-            return true;
+            return Screened::Passes;
         }
-        weighted_statistic(self, measurements)
-            .is_some_and(|chi2| self.accepts_statistic(chi2, lights))
+        match weighted_fit(self, measurements) {
+            Some(fit) if self.accepts_statistic(fit.chi2, lights) => Screened::Passes,
+            weighted => Screened::Fails(weighted),
+        }
     }
 
     /// True when `statistic` of a fit to `lights` lights is within the noise.
@@ -78,6 +81,13 @@ impl ChiSquare {
         let dof = lights.saturating_sub(3);
         dof == 0 || statistic <= self.threshold(dof)
     }
+}
+
+/// The outcome of [`ChiSquare::screen`].
+pub(super) enum Screened {
+    Passes,
+    /// The pixel fails the test; the weighted fit of all its lights, where it exists.
+    Fails(Option<WeightedFit>),
 }
 
 /// Weighted least squares (`W = 1 / variance` of each light's luminance) on the luminance:
@@ -102,11 +112,6 @@ pub(super) fn weighted_fit(chi: &ChiSquare, measurements: &[Measurement]) -> Opt
     let n_lum = cov * b;
     let chi2 = chi.statistic(measurements, &n_lum);
     Some(WeightedFit { n_lum, cov, chi2 })
-}
-
-/// The chi-square statistic of the weighted fit of `measurements` (its minimum over normals).
-pub(super) fn weighted_statistic(chi: &ChiSquare, measurements: &[Measurement]) -> Option<f64> {
-    weighted_fit(chi, measurements).map(|f| f.chi2)
 }
 
 impl WeightedFit {

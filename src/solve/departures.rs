@@ -81,42 +81,62 @@ fn median(values: &mut [f64]) -> f64 {
     *m
 }
 
-/// The scaled normal of the least median of squares over every triple of lights.
+/// The most lights [`best_triple`] searches (its readings are kept in arrays of this size).
+const MAX_TRIPLE_LIGHTS: usize = 16;
+
+/// The scaled normal of the least median of squares over every triple of lights (at most
+/// [`MAX_TRIPLE_LIGHTS`]; `None` above that or when every triple is singular).
 ///
 /// With 10 lights that is 120 triples per pixel, the data-scaled fit's main cost, so each
 /// triple is solved by Cramer's rule from cross products taken once per pair, and its median
 /// is only computed when it can win: the median of `m` residuals is below the best so far
-/// exactly when more than `m / 2` of them are, which a count answers without selecting.
+/// exactly when more than `m / 2` of them are, which a count answers without selecting. The
+/// readings are laid out one array per coordinate so that the count runs over all lights in
+/// vector registers.
 fn best_triple(measurements: &[Measurement], scratch: &mut Vec<f64>) -> Option<Vector3<f64>> {
     let m = measurements.len();
+    if m > MAX_TRIPLE_LIGHTS {
+        return None;
+    }
     let mid = m / 2;
+    let mut lights = [[0.0f64; MAX_TRIPLE_LIGHTS]; 4];
+    for (k, r) in measurements.iter().enumerate() {
+        lights[0][k] = r.l.x;
+        lights[1][k] = r.l.y;
+        lights[2][k] = r.l.z;
+        lights[3][k] = r.lum;
+    }
+    let [lx, ly, lz, lum] = &lights;
+    // |lum_k - g . l_k|, in the order `Vector3::dot` sums.
+    let residual =
+        |g: &Vector3<f64>, k: usize| (lum[k] - (g.x * lx[k] + g.y * ly[k] + g.z * lz[k])).abs();
+    let mut crosses = [[Vector3::zeros(); MAX_TRIPLE_LIGHTS]; MAX_TRIPLE_LIGHTS];
+    for a in 0..m {
+        for b in a + 1..m {
+            crosses[a][b] = measurements[a].l.cross(&measurements[b].l);
+        }
+    }
     let mut best: Option<(f64, Vector3<f64>)> = None;
     for a in 0..m {
         for b in a + 1..m {
-            let (la, lb) = (measurements[a].l, measurements[b].l);
-            let ab = la.cross(&lb);
+            let ab = crosses[a][b];
             for c in b + 1..m {
-                let lc = measurements[c].l;
-                let det = lc.dot(&ab);
+                let det = measurements[c].l.dot(&ab);
                 if det.abs() <= f64::EPSILON {
                     continue;
                 }
                 // Rows la, lb, lc: the inverse's columns are lb x lc, lc x la, la x lb.
-                let g = (lb.cross(&lc) * measurements[a].lum
-                    + lc.cross(&la) * measurements[b].lum
+                let g = (crosses[b][c] * measurements[a].lum - crosses[a][c] * measurements[b].lum
                     + ab * measurements[c].lum)
                     / det;
                 if let Some((score, _)) = best {
-                    let below = measurements
-                        .iter()
-                        .filter(|r| (r.lum - g.dot(&r.l)).abs() < score)
-                        .count();
+                    let below = (0..m).filter(|&k| residual(&g, k) < score).count();
                     if below <= mid {
                         continue;
                     }
                 }
                 scratch.clear();
-                scratch.extend(measurements.iter().map(|r| (r.lum - g.dot(&r.l)).abs()));
+                scratch.extend((0..m).map(|k| residual(&g, k)));
                 best = Some((median(scratch), g));
             }
         }
@@ -159,9 +179,10 @@ pub(super) fn fit(
     // are the minimal subsets searched for the start.
     let trimmed = trimmed_start(measurements, tuning.trim, all).unwrap_or(*least_squares);
     let scale = residual_scale(measurements, &trimmed, scratch);
+    // The median deviation is the root of the median variance (the root is monotone).
     scratch.clear();
-    scratch.extend(measurements.iter().map(|m| m.test_var.sqrt()));
-    let noise = median(scratch);
+    scratch.extend(measurements.iter().map(|m| m.test_var));
+    let noise = median(scratch).sqrt();
     if scale.is_nan() || scale <= tuning.model_scale_factor * noise {
         return None;
     }
@@ -170,12 +191,13 @@ pub(super) fn fit(
     } else {
         trimmed
     };
-    let scale = residual_scale(measurements, &start, scratch);
+    let mut scale = residual_scale(measurements, &start, scratch);
     all.clear();
     all.extend_from_slice(measurements);
     let mut g = start;
-    let mut scale = scale;
     let mut result = None;
+    // The residual scale of the latest fit on its own lights (before the noise floor).
+    let mut fitted_scale = f64::INFINITY;
     for _ in 0..ROUNDS {
         let albedo = g.norm();
         candidate.clear();
@@ -186,28 +208,25 @@ pub(super) fn fit(
                 && r >= -tuning.dark_limit * scale
                 && r <= tuning.bright_limit * scale
         }));
-        if candidate.len() < 4 {
+        if candidate.len() < 4 || (result.is_some() && same_lights(candidate, measurements)) {
+            // Too few lights, or the same lights as the fit already has: settled.
             break;
         }
         let Some(fit) = fit_normal_equations(candidate) else {
             break;
         };
-        let settled = result.is_some() && same_lights(candidate, measurements);
         std::mem::swap(measurements, candidate);
         g = fit.n_lum;
         result = Some(fit);
-        if settled {
-            break;
-        }
-        scale = residual_scale(measurements, &g, scratch).max(noise);
+        fitted_scale = residual_scale(measurements, &g, scratch);
+        scale = fitted_scale.max(noise);
     }
     // Judged on the lights the fit kept: where the noise model explains their residuals, the
     // pixel's departures are outliers against a model that holds (cast shadows on a
     // Lambertian surface), and the noise-model rejection judges them more finely than a scale
     // taken from the data (the early test above can only look at all lights, whose MAD a
     // contaminated start inflates).
-    let explained = result.is_some()
-        && residual_scale(measurements, &g, scratch) <= tuning.model_scale_factor * noise;
+    let explained = result.is_some() && fitted_scale <= tuning.model_scale_factor * noise;
     match result.filter(|_| !explained) {
         Some(mut fit) => {
             fit.kind = if measurements.len() < all.len() {

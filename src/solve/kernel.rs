@@ -4,7 +4,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::chi_square::ChiSquare;
+use super::chi_square::{ChiSquare, Screened};
 use super::lights::Illumination;
 use super::measure::{fit_normal_equations, fit_svd, Fit, Measurement};
 use super::options::{Estimator, Method, SolveOptions};
@@ -189,12 +189,15 @@ impl<'a> Kernel<'a> {
         if self.options.estimator() != Estimator::LeastSquares {
             self.chi_square.prepare(measurements);
         }
-        let escalate = match self.options.estimator() {
-            Estimator::LeastSquares => false,
-            Estimator::Robust => true,
-            Estimator::Adaptive => {
-                self.force_sheen || !self.chi_square.accepts(measurements, &fit.n_lum)
-            }
+        // Where the test fails, its weighted fit is the robust fit's start.
+        let (escalate, weighted) = match self.options.estimator() {
+            Estimator::LeastSquares => (false, None),
+            Estimator::Robust => (true, None),
+            Estimator::Adaptive if self.force_sheen => (true, None),
+            Estimator::Adaptive => match self.chi_square.screen(measurements, &fit.n_lum) {
+                Screened::Passes => (false, None),
+                Screened::Fails(weighted) => (true, weighted),
+            },
         };
         let fit = if escalate {
             row.escalated += 1;
@@ -205,7 +208,7 @@ impl<'a> Kernel<'a> {
                 view: self.illumination.view(point),
                 force_sheen: self.force_sheen || self.options.estimator() == Estimator::Robust,
             };
-            robust::refine(&context, measurements, buffers, fit)
+            robust::refine(&context, measurements, buffers, fit, weighted)
         } else {
             fit
         };

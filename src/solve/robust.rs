@@ -76,7 +76,8 @@ enum Rule {
 }
 
 /// Refits `measurements`, starting from their least-squares `fit`, leaving in `measurements`
-/// the lights the returned fit used. `spare` is a buffer of the same capacity.
+/// the lights the returned fit used. `weighted` is the weighted fit of all of them where the
+/// caller's test already computed it.
 ///
 /// Two rejection passes run from the weighted fit of all lights, one dropping any outlier and
 /// one dropping only lights darker than the fit. The result is the pass whose lights pass the
@@ -87,11 +88,12 @@ pub(super) fn refine(
     measurements: &mut Vec<Measurement>,
     buffers: &mut Buffers,
     least_squares: Fit,
+    weighted: Option<WeightedFit>,
 ) -> Fit {
     let options = context.options;
     let chi = context.chi;
     // A configured sheen model is the user's account of the model error: it decides there.
-    let Some(start) = weighted_fit(chi, measurements) else {
+    let Some(start) = weighted.or_else(|| weighted_fit(chi, measurements)) else {
         return least_squares;
     };
     let lambertian = chi.accepts_statistic(start.chi2, measurements.len());
