@@ -468,9 +468,7 @@ impl Wizard {
         self.save()?;
         Ok((check, chart, index))
     }
-}
 
-impl Wizard {
     /// A sheet that does not come out flat means the calibration does not explain the
     /// photographs (LEDs fitted to a wrong minimum, a sheet that lifted or moved): no bundle
     /// is written. The failed check stays in the state as the record of why, the LED fit is
