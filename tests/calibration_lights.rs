@@ -184,3 +184,38 @@ mod flatness_step {
         assert!(wiz.state.calibration.flatness.as_ref().unwrap().flat);
     }
 }
+
+/// Resuming a wizard session with another name, board or rig would mix two sessions'
+/// photographs: it is refused with the values to resume with; the same values resume it.
+#[test]
+fn a_wizard_session_resumes_only_with_its_own_rig_name_and_board() {
+    use psscan::calibration::wizard::Wizard;
+    use psscan::rig::Board;
+    let tmp = tempfile::tempdir().unwrap();
+    let rig = Rig::default_rig();
+    let board = Board::parse("9x6", 15.0).unwrap();
+    let (_, resumed) = Wizard::open(tmp.path(), rig.clone(), "studio-a", board).unwrap();
+    assert!(!resumed);
+    let mut other_rig = rig.clone();
+    other_rig.name = "other-rig".into();
+    let other_board = Board::parse("7x5", 20.0).unwrap();
+    for (r, name, b) in [
+        (&rig, "wizard", board),
+        (&rig, "studio-a", other_board),
+        (&other_rig, "studio-a", board),
+    ] {
+        let message = Wizard::open(tmp.path(), r.clone(), name, b)
+            .err()
+            .expect("another session's values are refused")
+            .to_string();
+        assert!(
+            message.contains(&format!("rig `{}`", rig.name))
+                && message.contains("--name studio-a")
+                && message.contains("--wizard-board 9x6")
+                && message.contains("--wizard-square-mm 15`"),
+            "{message}"
+        );
+    }
+    let (wiz, resumed) = Wizard::open(tmp.path(), rig, "studio-a", board).unwrap();
+    assert!(resumed && wiz.state.name == "studio-a");
+}

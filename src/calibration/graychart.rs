@@ -13,6 +13,7 @@ use crate::raw::Mosaic;
 use crate::rig::Rig;
 
 use crate::rig::{ChartDescription, ChartRect};
+use crate::solve::NoiseModel;
 
 /// One patch under one light: mean linear value per channel (1.0 = white level) of its CFA
 /// samples, and whether any sample clipped.
@@ -241,6 +242,108 @@ pub fn calibrate(
         chart: chart.name.clone(),
         lights,
     })
+}
+
+/// The chart's rectangle in the mosaics (`window` on the sensor): the projection of its world
+/// corners through the calibrated camera.
+pub fn chart_rect(rig: &Rig, window: SensorWindow, world: [f64; 4]) -> Result<ChartRect> {
+    let [x0, x1, y0, y1] = world;
+    let to_image = |x: f64, y: f64| -> Result<(f64, f64)> {
+        let (u, v) = rig
+            .camera
+            .project(&nalgebra::Vector3::new(x, y, rig.sample.z_m))
+            .ok_or_else(|| Error::Invalid("the gray chart is not in front of the camera".into()))?;
+        Ok(((u - window.x0) / window.step, (v - window.y0) / window.step))
+    };
+    let (ax, ay) = to_image(x0, y1)?;
+    let (bx, by) = to_image(x1, y0)?;
+    Ok(ChartRect {
+        x0: ax,
+        y0: ay,
+        x1: bx,
+        y1: by,
+    })
+}
+
+/// How far LED `k`'s modelled shading may bend the chart's linearity fit when the LED is up
+/// to `error_m` from where `rig` puts it: for the LED moved by `error_m` along each axis,
+/// ideal readings (nominal reflectance times the ratio of the moved LED's shading to the
+/// modelled one at each patch) go through the same fit as the chart's readings, and the worst
+/// patch's deviation is kept. A common factor goes into the slope; the spread shows, largest
+/// on the darkest patch, where a small shift of the fitted offset is a large fraction.
+pub(super) fn shading_uncertainty(
+    rig: &Rig,
+    k: usize,
+    chart: &ChartDescription,
+    rect: &ChartRect,
+    window: SensorWindow,
+    error_m: f64,
+) -> Result<f64> {
+    let mapper = rig.camera.plane_mapper(rig.sample.z_m);
+    let (cw, ch) = (
+        (rect.x1 - rect.x0) / chart.cols as f64,
+        (rect.y1 - rect.y0) / chart.rows as f64,
+    );
+    let points = (0..chart.rows * chart.cols)
+        .map(|i| {
+            let (r, c) = (i / chart.cols, i % chart.cols);
+            let (u, v) = window.to_sensor(
+                rect.x0 + (c as f64 + 0.5) * cw,
+                rect.y0 + (r as f64 + 0.5) * ch,
+            );
+            mapper
+                .map(u, v)
+                .ok_or_else(|| Error::Invalid("the gray chart is not on the table plane".into()))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let shade = |led: &crate::rig::Led, p: &nalgebra::Vector3<f64>| {
+        let s = led.sample_at(p);
+        s.falloff * s.direction.z.max(0.0)
+    };
+    let led = &rig.leds[k];
+    let mut worst = 0.0f64;
+    for axis in 0..3 {
+        for sign in [-1.0, 1.0] {
+            let mut moved = led.clone();
+            moved.position_m[axis] += sign * error_m;
+            let readings = points
+                .iter()
+                .zip(&chart.reflectance)
+                .map(|(p, x)| {
+                    let y = x * shade(&moved, p) / shade(led, p);
+                    PatchReading {
+                        rgb: [y; 3],
+                        clipped: false,
+                    }
+                })
+                .collect();
+            let fit = analyse(chart, readings)?;
+            worst = worst.max(fit.linearity.worst_deviation.abs());
+        }
+    }
+    Ok(worst)
+}
+
+/// The largest relative standard deviation of a patch's green mean: the sensor's noise at the
+/// patch's level over the green samples the patch reading averages.
+pub(super) fn patch_noise(
+    mosaic: &Mosaic,
+    chart: &ChartDescription,
+    rect: &ChartRect,
+    noise: &NoiseModel,
+) -> Result<f64> {
+    let side = |extent: f64, n: usize| extent / n as f64 * chart.sample_fraction;
+    let samples = side(rect.x1 - rect.x0, chart.cols) * side(rect.y1 - rect.y0, chart.rows);
+    // Half the CFA sites are green.
+    let greens = (samples / 2.0).max(1.0);
+    // The readings as the sensor gave them (before the shading is divided out).
+    Ok(read_patches(mosaic, chart, rect)?
+        .iter()
+        .map(|p| {
+            let v = p.rgb[1].max(1e-6);
+            (noise.photon * v + noise.floor).sqrt() / greens.sqrt() / v
+        })
+        .fold(0.0, f64::max))
 }
 
 #[cfg(test)]

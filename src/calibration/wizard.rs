@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use super::bundle::{self, Calibration};
 use super::camera::{self, CameraOptions, DetectedView};
-use super::graychart::{self, ChartReport, Shading};
+use super::graychart::{self, chart_rect, patch_noise, shading_uncertainty, ChartReport, Shading};
 use super::whitesheet::{self, FLATNESS_TOLERANCE_DEG};
 use super::{lights, table};
 use crate::error::{Error, Result};
@@ -19,8 +19,8 @@ use crate::plane::{Frames, GrayImage, SensorWindow};
 use crate::progress::Progress;
 use crate::raw::Mosaic;
 use crate::rig::Board;
+use crate::rig::ChartDescription;
 use crate::rig::Rig;
-use crate::rig::{ChartDescription, ChartRect};
 use crate::solve::NoiseModel;
 
 /// The wizard's state file ([`State`] as TOML) in the bundle folder; a session that finds it there
@@ -161,31 +161,44 @@ impl Wizard {
     /// Starts a new session in `dir`, or resumes the one whose state file is there.
     pub fn open(dir: &Path, hand: Rig, name: &str, board: Board) -> Result<(Wizard, bool)> {
         let path = dir.join(STATE_FILE);
-        if path.is_file() {
+        let resumed = path.is_file();
+        let state = if resumed {
             let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
             let state: State = toml::from_str(&text)
                 .map_err(|e| Error::config(&path, "state", e.message().to_string()))?;
-            return Ok((
-                Wizard {
-                    dir: dir.to_path_buf(),
-                    hand,
-                    state,
-                    chart: ChartDescription::munsell_12(),
-                    chart_world: CHART_WORLD,
-                },
-                true,
-            ));
-        }
-        crate::fsutil::create_dir_all(&dir.join("views"))?;
-        let state = State {
-            step: Step::CameraViews,
-            rig_name: hand.name.clone(),
-            name: name.to_string(),
-            board,
-            attempts: 0,
-            accepted: Vec::new(),
-            rejected: Vec::new(),
-            calibration: Calibration::default(),
+            // Resuming with another rig, name or board would mix two sessions' photographs.
+            let (rig, saved_board) = (&state.rig_name, state.board);
+            let square_mm = (saved_board.square_m * 1e6).round() / 1e3;
+            if (rig.as_str(), state.name.as_str(), saved_board) != (&hand.name, name, board) {
+                return Err(Error::Invalid(format!(
+                    "{} holds the calibration session of rig `{rig}` named `{}` with a {}x{} \
+                     board of {} mm squares; resume it with that rig, `--name {}`, \
+                     `--wizard-board {}x{}` and `--wizard-square-mm {}`, or start another \
+                     session in another folder (--out)",
+                    dir.display(),
+                    state.name,
+                    saved_board.cols,
+                    saved_board.rows,
+                    square_mm,
+                    state.name,
+                    saved_board.cols,
+                    saved_board.rows,
+                    square_mm,
+                )));
+            }
+            state
+        } else {
+            crate::fsutil::create_dir_all(&dir.join("views"))?;
+            State {
+                step: Step::CameraViews,
+                rig_name: hand.name.clone(),
+                name: name.to_string(),
+                board,
+                attempts: 0,
+                accepted: Vec::new(),
+                rejected: Vec::new(),
+                calibration: Calibration::default(),
+            }
         };
         let wizard = Wizard {
             dir: dir.to_path_buf(),
@@ -194,8 +207,10 @@ impl Wizard {
             chart: ChartDescription::munsell_12(),
             chart_world: CHART_WORLD,
         };
-        wizard.save()?;
-        Ok((wizard, false))
+        if !resumed {
+            wizard.save()?;
+        }
+        Ok((wizard, resumed))
     }
 
     fn save(&self) -> Result<()> {
@@ -495,106 +510,4 @@ impl Wizard {
             check.exposures,
         ))
     }
-}
-
-/// The chart's rectangle in the mosaics (`window` on the sensor): the projection of its world
-/// corners through the calibrated camera.
-pub fn chart_rect(rig: &Rig, window: SensorWindow, world: [f64; 4]) -> Result<ChartRect> {
-    let [x0, x1, y0, y1] = world;
-    let to_image = |x: f64, y: f64| -> Result<(f64, f64)> {
-        let (u, v) = rig
-            .camera
-            .project(&nalgebra::Vector3::new(x, y, rig.sample.z_m))
-            .ok_or_else(|| Error::Invalid("the gray chart is not in front of the camera".into()))?;
-        Ok(((u - window.x0) / window.step, (v - window.y0) / window.step))
-    };
-    let (ax, ay) = to_image(x0, y1)?;
-    let (bx, by) = to_image(x1, y0)?;
-    Ok(ChartRect {
-        x0: ax,
-        y0: ay,
-        x1: bx,
-        y1: by,
-    })
-}
-
-/// How far LED `k`'s modelled shading may bend the chart's linearity fit when the LED is up
-/// to `error_m` from where `rig` puts it: for the LED moved by `error_m` along each axis,
-/// ideal readings (nominal reflectance times the ratio of the moved LED's shading to the
-/// modelled one at each patch) go through the same fit as the chart's readings, and the worst
-/// patch's deviation is kept. A common factor goes into the slope; the spread shows, largest
-/// on the darkest patch, where a small shift of the fitted offset is a large fraction.
-fn shading_uncertainty(
-    rig: &Rig,
-    k: usize,
-    chart: &ChartDescription,
-    rect: &ChartRect,
-    window: SensorWindow,
-    error_m: f64,
-) -> Result<f64> {
-    let mapper = rig.camera.plane_mapper(rig.sample.z_m);
-    let (cw, ch) = (
-        (rect.x1 - rect.x0) / chart.cols as f64,
-        (rect.y1 - rect.y0) / chart.rows as f64,
-    );
-    let points = (0..chart.rows * chart.cols)
-        .map(|i| {
-            let (r, c) = (i / chart.cols, i % chart.cols);
-            let (u, v) = window.to_sensor(
-                rect.x0 + (c as f64 + 0.5) * cw,
-                rect.y0 + (r as f64 + 0.5) * ch,
-            );
-            mapper
-                .map(u, v)
-                .ok_or_else(|| Error::Invalid("the gray chart is not on the table plane".into()))
-        })
-        .collect::<Result<Vec<_>>>()?;
-    let shade = |led: &crate::rig::Led, p: &nalgebra::Vector3<f64>| {
-        let s = led.sample_at(p);
-        s.falloff * s.direction.z.max(0.0)
-    };
-    let led = &rig.leds[k];
-    let mut worst = 0.0f64;
-    for axis in 0..3 {
-        for sign in [-1.0, 1.0] {
-            let mut moved = led.clone();
-            moved.position_m[axis] += sign * error_m;
-            let readings = points
-                .iter()
-                .zip(&chart.reflectance)
-                .map(|(p, x)| {
-                    let y = x * shade(&moved, p) / shade(led, p);
-                    graychart::PatchReading {
-                        rgb: [y; 3],
-                        clipped: false,
-                    }
-                })
-                .collect();
-            let fit = graychart::analyse(chart, readings)?;
-            worst = worst.max(fit.linearity.worst_deviation.abs());
-        }
-    }
-    Ok(worst)
-}
-
-/// The largest relative standard deviation of a patch's green mean: the sensor's noise at the
-/// patch's level over the green samples the patch reading averages.
-fn patch_noise(
-    mosaic: &Mosaic,
-    chart: &ChartDescription,
-    rect: &ChartRect,
-    noise: &NoiseModel,
-) -> Result<f64> {
-    let side = |extent: f64, n: usize| extent / n as f64 * chart.sample_fraction;
-    let samples = side(rect.x1 - rect.x0, chart.cols) * side(rect.y1 - rect.y0, chart.rows);
-    // Half the CFA sites are green.
-    let greens = (samples / 2.0).max(1.0);
-    // The readings as the sensor gave them (before the shading is divided out).
-    Ok(graychart::read_patches(mosaic, chart, rect)?
-        .iter()
-        .map(|p| {
-            let v = p.rgb[1].max(1e-6);
-            (noise.photon * v + noise.floor).sqrt() / greens.sqrt() / v
-        })
-        .fold(0.0, f64::max))
 }
