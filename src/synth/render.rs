@@ -154,46 +154,39 @@ impl<'a> Scene<'a> {
         let plane_z = rig.sample.z_m;
         let width = self.width;
         let mut out = RgbPlanes::new(width, self.height);
-        out.r
-            .data
-            .par_chunks_mut(width)
-            .zip(out.g.data.par_chunks_mut(width))
-            .zip(out.b.data.par_chunks_mut(width))
-            .enumerate()
-            .for_each(|(y, ((r, g), b))| {
-                let rows = [r, g, b];
-                for x in 0..width {
-                    let i = y * width + x;
-                    let [px, py] = self.points[i];
-                    let point = Vector3::new(px, py, plane_z);
-                    let light = led.sample_at(&point);
-                    let n = self.truth_normal(i);
-                    let kd: [f64; 3] = std::array::from_fn(|c| self.truth.albedo[c].data[i] as f64);
-                    let shade = match &self.options.sheen {
-                        None => lambert(kd, &n, &light.direction),
-                        Some(sheen) => {
-                            let view = (camera - point).normalize();
-                            sheen_shade(sheen, kd, &n, &light.direction, &view)
-                        }
-                    };
-                    let visibility = match &self.shadow_grid {
-                        Some(grid)
-                            if grid.shadowed(
-                                px,
-                                py,
-                                self.truth.height.data[i] as f64,
-                                &led.position(),
-                            ) =>
-                        {
-                            self.options.shadow_fill
-                        }
-                        _ => 1.0,
-                    };
-                    for c in 0..3 {
-                        rows[c][x] = (light.falloff * scale[c] * shade[c] * visibility) as f32;
+        out.par_rows_mut(|y, rows| {
+            for x in 0..width {
+                let i = y * width + x;
+                let [px, py] = self.points[i];
+                let point = Vector3::new(px, py, plane_z);
+                let light = led.sample_at(&point);
+                let n = self.truth_normal(i);
+                let kd: [f64; 3] = std::array::from_fn(|c| self.truth.albedo[c].data[i] as f64);
+                let shade = match &self.options.sheen {
+                    None => lambert(kd, &n, &light.direction),
+                    Some(sheen) => {
+                        let view = (camera - point).normalize();
+                        sheen_shade(sheen, kd, &n, &light.direction, &view)
                     }
+                };
+                let visibility = match &self.shadow_grid {
+                    Some(grid)
+                        if grid.shadowed(
+                            px,
+                            py,
+                            self.truth.height.data[i] as f64,
+                            &led.position(),
+                        ) =>
+                    {
+                        self.options.shadow_fill
+                    }
+                    _ => 1.0,
+                };
+                for c in 0..3 {
+                    rows[c][x] = (light.falloff * scale[c] * shade[c] * visibility) as f32;
                 }
-            });
+            }
+        });
         out
     }
 

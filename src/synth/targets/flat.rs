@@ -5,7 +5,6 @@
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_xoshiro::Xoshiro256PlusPlus;
-use rayon::prelude::*;
 
 use super::binned_size;
 use crate::plane::{Frames, LightFrame, RgbPlanes, SensorWindow};
@@ -28,25 +27,18 @@ pub fn render_flat_target(
     let led = &rig.leds[k];
     let scale = rig.led_rgb_power(k).map(|c| c / led.power * exposure);
     let mut out = RgbPlanes::new(width, height);
-    out.r
-        .data
-        .par_chunks_mut(width)
-        .zip(out.g.data.par_chunks_mut(width))
-        .zip(out.b.data.par_chunks_mut(width))
-        .enumerate()
-        .for_each(|(y, ((r, g), b))| {
-            let rows = [r, g, b];
-            for x in 0..width {
-                let (u, v) = window.to_sensor(x as f64, y as f64);
-                let Some(p) = mapper.map(u, v) else { continue };
-                let light = led.sample_at(&p);
-                let shade = light.falloff * light.direction.z.max(0.0);
-                let rho = reflectance(p.x, p.y);
-                for c in 0..3 {
-                    rows[c][x] = (shade * scale[c] * rho[c]) as f32;
-                }
+    out.par_rows_mut(|y, rows| {
+        for x in 0..width {
+            let (u, v) = window.to_sensor(x as f64, y as f64);
+            let Some(p) = mapper.map(u, v) else { continue };
+            let light = led.sample_at(&p);
+            let shade = light.falloff * light.direction.z.max(0.0);
+            let rho = reflectance(p.x, p.y);
+            for c in 0..3 {
+                rows[c][x] = (shade * scale[c] * rho[c]) as f32;
             }
-        });
+        }
+    });
     out
 }
 
