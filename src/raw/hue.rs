@@ -15,6 +15,7 @@ use rayon::prelude::*;
 use super::chroma::smooth_chroma;
 use super::mosaic::{mirror, GREEN};
 use super::shading::SiteFit;
+use crate::math::exp_neg;
 use crate::plane::RgbPlanes;
 
 /// Relative change of the own channel (as a log ratio) at which a direction's weight falls
@@ -132,7 +133,7 @@ fn ratio_along<'a>(
         // Beyond this excess over the best direction a weight is below e^-30: nothing.
         let excess = (change - best) / (CONTINUITY_SCALE * CONTINUITY_SCALE);
         if excess < 30.0 {
-            let weight = (-excess).exp();
+            let weight = exp_neg(excess);
             sum += weight * ratio;
             weights += weight;
         }

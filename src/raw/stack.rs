@@ -8,7 +8,7 @@ use super::hue::colour_ratios;
 use super::mosaic::{bilinear, LinearMosaic, Mosaic, Resolution};
 use super::shading::{site_albedos, ShadingField};
 use crate::error::{Error, Result};
-use crate::plane::{LightFrame, Mask, RgbPlanes};
+use crate::plane::{LightFrame, Mask, Plane, RgbPlanes};
 
 /// Develops a stack of frames of one static scene, each lit by an illuminant of colour
 /// `illuminants[k]` (the raw R, G, B response to it; `None`: all the same colour).
@@ -127,19 +127,26 @@ fn develop_full(
         .into_iter()
         .zip(colours)
         .map(|(frame, colour)| {
-            let mut rgb = RgbPlanes::new(w, h);
-            rgb.par_rows_mut(|y, out| {
+            // The frame's samples become its green plane in place (each pixel's sample is
+            // read before its green value is written): a third less fresh memory per frame.
+            let mut rgb = RgbPlanes {
+                r: Plane::new(w, h, 0.0),
+                g: Plane::from_vec(w, h, frame.values).expect("a mosaic's samples fill it"),
+                b: Plane::new(w, h, 0.0),
+            };
+            rgb.par_rows_mut(|y, [r, g, b]| {
                 for x in 0..w {
                     let i = y * w + x;
                     let own = pattern[y % 2][x % 2] as usize;
-                    let v = frame.values[i];
-                    for c in 0..3 {
-                        out[c][x] = if c == own {
+                    let v = g[x];
+                    let value = |c: usize| {
+                        if c == own {
                             v
                         } else {
                             v * ratios[c].data[i] * colour[c] / colour[own]
-                        };
-                    }
+                        }
+                    };
+                    (r[x], g[x], b[x]) = (value(0), value(1), value(2));
                 }
             });
             LightFrame {
