@@ -70,15 +70,41 @@ pub fn write_png(path: &Path, image: &DynamicImage) -> Result<()> {
     write_atomic(path, &bytes)
 }
 
-/// Writes named `f32` channels of one size as a single-layer EXR (lossless compression).
+/// Writes named `f32` channels of one size as a single-layer EXR (lossless RLE compression).
 pub fn write_exr(path: &Path, channels: &[(&str, &Plane)]) -> Result<()> {
     let bytes = encode_exr(path, channels)?;
     write_atomic(path, &bytes)
 }
 
-/// Named `f32` channels of one size encoded as single-layer EXR file bytes (lossless; the
-/// exr crate compresses its blocks on all cores); `path` only names the file in errors.
+/// How an EXR's blocks are stored. Both are lossless.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ExrCompression {
+    /// Run-length encoded: pays where values repeat (class and count channels). The exr crate
+    /// compresses its blocks on all cores.
+    Rle,
+    /// Stored as they are: for maps of continuous values, where runs are rare and RLE saves
+    /// nothing (the 16 MP normal and albedo EXRs came out the same size either way) but costs
+    /// an encode pass.
+    None,
+}
+
+/// Named `f32` channels of one size encoded as single-layer EXR file bytes (RLE, see
+/// [`ExrCompression`]); `path` only names the file in errors.
 pub fn encode_exr(path: &Path, channels: &[(&str, &Plane)]) -> Result<Vec<u8>> {
+    let owned = channels
+        .iter()
+        .map(|(name, plane)| (*name, (*plane).clone()))
+        .collect();
+    encode_exr_planes(path, owned, ExrCompression::Rle)
+}
+
+/// [`encode_exr`] taking the planes (the encoder owns its samples, so borrowed planes would
+/// be copied) and the compression.
+pub fn encode_exr_planes(
+    path: &Path,
+    channels: Vec<(&str, Plane)>,
+    compression: ExrCompression,
+) -> Result<Vec<u8>> {
     let Some((_, first)) = channels.first() else {
         return Err(PsError::image(path, "no channels to write"));
     };
@@ -90,13 +116,17 @@ pub fn encode_exr(path: &Path, channels: &[(&str, &Plane)]) -> Result<Vec<u8>> {
         return Err(PsError::image(path, "channels of different sizes"));
     }
     let list = channels
-        .iter()
-        .map(|(name, plane)| AnyChannel::new(*name, FlatSamples::F32(plane.data.clone())))
+        .into_iter()
+        .map(|(name, plane)| AnyChannel::new(name, FlatSamples::F32(plane.data)))
         .collect();
+    let encoding = match compression {
+        ExrCompression::Rle => Encoding::FAST_LOSSLESS,
+        ExrCompression::None => Encoding::UNCOMPRESSED,
+    };
     let layer = Layer::new(
         (width, height),
         LayerAttributes::named("psscan"),
-        Encoding::FAST_LOSSLESS,
+        encoding,
         AnyChannels::sort(list),
     );
     let mut cursor = Cursor::new(Vec::new());
@@ -169,6 +199,11 @@ mod tests {
         assert_eq!(back[1], a);
         let err = read_exr(&path, &["G"]).unwrap_err().to_string();
         assert!(err.contains("x.exr") && err.contains("\"G\""), "{err}");
+        // Uncompressed storage reads back the same samples.
+        let channels = vec![("R", a.clone()), ("residual", b.clone())];
+        let bytes = encode_exr_planes(&path, channels, ExrCompression::None).unwrap();
+        write_atomic(&path, &bytes).unwrap();
+        assert_eq!(read_exr(&path, &["R", "residual"]).unwrap(), vec![a, b]);
     }
 
     #[test]

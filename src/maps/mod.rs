@@ -15,6 +15,7 @@ use serde::Serialize;
 
 use crate::error::{Error, Result};
 use crate::fsutil::create_dir_all;
+use crate::io::ExrCompression;
 use crate::plane::Plane;
 use crate::solve::SolveResult;
 use crate::timing::Busy;
@@ -209,11 +210,13 @@ fn encode_map(
         ),
         MapFile::NormalExr => {
             let [nx, ny, nz] = encode::normal_planes(result, options.normal_convention);
-            crate::io::encode_exr(path, &[("R", &nx), ("G", &ny), ("B", &nz)])
+            let channels = vec![("R", nx), ("G", ny), ("B", nz)];
+            crate::io::encode_exr_planes(path, channels, ExrCompression::None)
         }
         MapFile::AlbedoExr => {
-            let [r, g, b] = &result.albedo;
-            crate::io::encode_exr(path, &[("R", r), ("G", g), ("B", b)])
+            let [r, g, b] = result.albedo.clone();
+            let channels = vec![("R", r), ("G", g), ("B", b)];
+            crate::io::encode_exr_planes(path, channels, ExrCompression::None)
         }
         MapFile::Confidence => {
             let lights =
@@ -224,17 +227,17 @@ fn encode_map(
                 result.status.iter().map(|&s| s as u8 as f32).collect(),
             )?;
             let fit = Plane::from_vec(w, h, result.fit.iter().map(|&f| f as u8 as f32).collect())?;
-            crate::io::encode_exr(
-                path,
-                &[
-                    ("residual", &result.residual),
-                    ("predicted_error_deg", &result.predicted_error_deg),
-                    ("condition", &result.condition),
-                    ("lights_used", &lights),
-                    ("status", &status),
-                    ("fit", &fit),
-                ],
-            )
+            let channels = vec![
+                ("residual", result.residual.clone()),
+                ("predicted_error_deg", result.predicted_error_deg.clone()),
+                ("condition", result.condition.clone()),
+                ("lights_used", lights),
+                ("status", status),
+                ("fit", fit),
+            ];
+            // The class and count channels are runs: RLE takes the 16 MP file from 386 MB
+            // of samples to 265 MB.
+            crate::io::encode_exr_planes(path, channels, ExrCompression::Rle)
         }
     }
 }
