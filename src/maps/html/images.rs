@@ -8,7 +8,7 @@ use image::{ImageEncoder, RgbImage};
 use jpeg_encoder::SamplingFactor;
 use rayon::prelude::*;
 
-use super::relight::{linear_to_srgb, RelightTextures};
+use super::relight::{linear_to_srgb, linear_to_srgb8, RelightTextures};
 use crate::error::{Error, Result};
 use crate::io::read_exr;
 use crate::maps::encode::NormalConvention;
@@ -455,11 +455,7 @@ pub fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<Rgb
         })
     };
     rayon::join(
-        || {
-            maps.albedo
-                .as_ref()
-                .map(|a| view(a, &|v| byte(linear_to_srgb(v))))
-        },
+        || maps.albedo.as_ref().map(|a| view(a, &linear_to_srgb8)),
         || {
             maps.normal
                 .as_ref()
