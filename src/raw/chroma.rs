@@ -47,12 +47,11 @@ pub fn smooth_chroma(pattern: [[u8; 2]; 2], ratios: &mut RgbPlanes) {
     ratios.par_rows_mut(|y, rows| {
         let sums = window_sums(&chroma, w, h, y, inv);
         for x in 0..w {
-            let weights = sums[3][x];
             if chroma[0][y * w + x].is_nan() {
                 continue;
             }
             let own = pattern[y % 2][x % 2] as usize;
-            let mean: [f32; 3] = std::array::from_fn(|c| sums[c][x] / weights);
+            let mean: [f32; 3] = std::array::from_fn(|c| sums[c][x] / sums[3][x]);
             for c in 0..3 {
                 rows[c][x] = if c == own {
                     1.0
@@ -93,54 +92,34 @@ fn log_chroma(ratios: &RgbPlanes) -> Chroma {
 fn window_sums(chroma: &Chroma, w: usize, h: usize, y: usize, inv: f32) -> [Vec<f32>; 4] {
     let mut sums: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0f32; w]);
     let centre: [&[f32]; 3] = std::array::from_fn(|c| &chroma[c][y * w..(y + 1) * w]);
-    // The pixels whose window crosses the left or right border (every pixel of a narrow row).
-    let border: Vec<usize> = if w > 2 * RADIUS {
-        (0..RADIUS).chain(w - RADIUS..w).collect()
-    } else {
-        (0..w).collect()
+    // Away from the left and right borders a pixel's neighbours at one offset are a shifted
+    // slice; the pixels whose window crosses a border (every pixel of a narrow row) are
+    // taken one at a time, mirrored.
+    let interior = (w > 2 * RADIUS).then_some(RADIUS..w - RADIUS);
+    let border: Vec<usize> = match &interior {
+        Some(_) => (0..RADIUS).chain(w - RADIUS..w).collect(),
+        None => (0..w).collect(),
     };
     for dy in -(RADIUS as isize)..=RADIUS as isize {
         let row = mirror(y as isize + dy, h) * w;
         let source: [&[f32]; 3] = std::array::from_fn(|c| &chroma[c][row..row + w]);
         for dx in -(RADIUS as isize)..=RADIUS as isize {
-            // Away from the left and right borders the neighbours are a shifted slice.
-            if w > 2 * RADIUS {
-                let (from, to) = (RADIUS, w - RADIUS);
-                let shifted = |c: usize| {
-                    let start = (from as isize + dx) as usize;
-                    &source[c][start..start + (to - from)]
-                };
+            // Adds the neighbours from `source[first..]` to the pixels `pixels`.
+            let mut add = |pixels: std::ops::Range<usize>, first: usize| {
+                let q = first..first + pixels.len();
                 let [s0, s1, s2, s3] = &mut sums;
                 accumulate(
-                    [
-                        &centre[0][from..to],
-                        &centre[1][from..to],
-                        &centre[2][from..to],
-                    ],
-                    [shifted(0), shifted(1), shifted(2)],
+                    centre.map(|c| &c[pixels.clone()]),
+                    source.map(|c| &c[q.clone()]),
                     inv,
-                    [
-                        &mut s0[from..to],
-                        &mut s1[from..to],
-                        &mut s2[from..to],
-                        &mut s3[from..to],
-                    ],
+                    [s0, s1, s2, s3].map(|s| &mut s[pixels.clone()]),
                 );
+            };
+            if let Some(pixels) = &interior {
+                add(pixels.clone(), (pixels.start as isize + dx) as usize);
             }
             for &x in &border {
-                let q = mirror(x as isize + dx, w);
-                let [s0, s1, s2, s3] = &mut sums;
-                accumulate(
-                    [&centre[0][x..=x], &centre[1][x..=x], &centre[2][x..=x]],
-                    [&source[0][q..=q], &source[1][q..=q], &source[2][q..=q]],
-                    inv,
-                    [
-                        &mut s0[x..=x],
-                        &mut s1[x..=x],
-                        &mut s2[x..=x],
-                        &mut s3[x..=x],
-                    ],
-                );
+                add(x..x + 1, mirror(x as isize + dx, w));
             }
         }
     }
@@ -148,15 +127,13 @@ fn window_sums(chroma: &Chroma, w: usize, h: usize, y: usize, inv: f32) -> [Vec<
 }
 
 /// Adds each neighbour's weighted chroma and weight into `sums` (see [`accumulate_portable`]),
-/// on AVX2 where the CPU has it (the same arithmetic, eight pixels at a time).
+/// on AVX2 where the CPU has it (the same arithmetic, eight pixels at a time; the standard
+/// library caches the CPU check).
 fn accumulate(centre: [&[f32]; 3], neighbour: [&[f32]; 3], inv: f32, sums: [&mut [f32]; 4]) {
     #[cfg(target_arch = "x86_64")]
-    {
-        static AVX2: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        if *AVX2.get_or_init(|| is_x86_feature_detected!("avx2")) {
-            // SAFETY: the CPU has AVX2 (checked above).
-            return unsafe { accumulate_avx2(centre, neighbour, inv, sums) };
-        }
+    if is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2 (checked above).
+        return unsafe { accumulate_avx2(centre, neighbour, inv, sums) };
     }
     accumulate_portable(centre, neighbour, inv, sums)
 }

@@ -7,7 +7,7 @@ use std::path::Path;
 use image::RgbImage;
 
 use super::images::jpeg_bytes;
-use super::relight::linear_to_srgb;
+use super::relight::linear_to_srgb8;
 use crate::error::Result;
 use crate::fsutil::write_atomic;
 use crate::plane::Frames;
@@ -56,7 +56,7 @@ pub fn write_frame_strip(frames: &Frames, dir: &Path) -> Result<()> {
     let strip = RgbImage::from_fn((tw * n) as u32, th as u32, |x, y| {
         let (k, x) = (x as usize / tw, x as usize % tw);
         let v = sample(k, x, y as usize);
-        image::Rgb(v.map(|c| (linear_to_srgb(c / white) * 255.0).round() as u8))
+        image::Rgb(v.map(|c| linear_to_srgb8(c / white)))
     });
     write_atomic(
         &dir.join(FRAME_STRIP_FILE),

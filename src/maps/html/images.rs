@@ -8,7 +8,7 @@ use image::{ImageEncoder, RgbImage};
 use jpeg_encoder::SamplingFactor;
 use rayon::prelude::*;
 
-use super::relight::{linear_to_srgb, linear_to_srgb8, RelightTextures};
+use super::relight::{linear_to_srgb8, RelightTextures};
 use crate::error::{Error, Result};
 use crate::io::read_exr;
 use crate::maps::encode::NormalConvention;
@@ -327,7 +327,7 @@ pub fn relight_textures(maps: &FullMaps, r: &Reduction) -> Option<RelightTexture
             ([0u8; 3], [0u8; 3])
         } else {
             (
-                a.map(|v| byte(linear_to_srgb((v / count as f64) as f32))),
+                a.map(|v| linear_to_srgb8((v / count as f64) as f32)),
                 n.map(|v| byte(((v / len) * 0.5 + 0.5) as f32)),
             )
         }

@@ -224,7 +224,7 @@ pub fn shade_texel(albedo: [u8; 3], normal: [u8; 3], p: &RelightParams) -> [u8; 
         } else {
             0.0
         };
-        (linear_to_srgb(value) * 255.0).round() as u8
+        linear_to_srgb8(value)
     })
 }
 
@@ -242,6 +242,8 @@ pub fn render(textures: &RelightTextures, params: &RelightParams) -> RgbImage {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     #[test]
     fn the_srgb_byte_table_gives_the_direct_byte() {
         // Every 61st bit pattern from 0 to just past 1 (17 million values), and the edges.
@@ -250,15 +252,9 @@ mod tests {
             .map(f32::from_bits)
             .chain([-1.0, 0.0, 1.0, 2.0, f32::NAN, f32::INFINITY])
         {
-            assert_eq!(
-                super::linear_to_srgb8(v),
-                super::srgb8_direct(v),
-                "at {v:e}"
-            );
+            assert_eq!(linear_to_srgb8(v), srgb8_direct(v), "at {v:e}");
         }
     }
-
-    use super::*;
 
     fn flat_white() -> ([u8; 3], [u8; 3]) {
         ([255; 3], [128, 128, 255])
