@@ -74,43 +74,95 @@ impl ShadingField {
         self.frames
     }
 
-    /// Every frame's shading vector at sample `(x, y)`, written into `out` (one per frame).
-    fn at(&self, x: usize, y: usize, out: &mut [[f64; 3]]) {
-        // Node i sits at i * step, the last one on the border (`len - 1`).
-        let locate = |p: usize, n: usize, len: usize| {
-            let i = (p / self.step).min(n - 2);
-            let lo = i * self.step;
-            let hi = ((i + 1) * self.step).min(len - 1);
-            let t = if hi > lo {
-                (p as f64 - lo as f64) / (hi - lo) as f64
-            } else {
-                0.0
-            };
-            (i, t.clamp(0.0, 1.0))
+    /// Node `i` of `n` along an axis of `len` samples at or below `p`, and `p`'s fraction of
+    /// the way to node `i + 1` (node i sits at `i * step`, the last one on the border).
+    fn locate(&self, p: usize, n: usize, len: usize) -> (usize, f64) {
+        let i = (p / self.step).min(n - 2);
+        let lo = i * self.step;
+        let hi = ((i + 1) * self.step).min(len - 1);
+        let t = if hi > lo {
+            (p as f64 - lo as f64) / (hi - lo) as f64
+        } else {
+            0.0
         };
-        let (i, tx) = locate(x, self.nx, self.width);
-        let (j, ty) = locate(y, self.ny, self.height);
-        let node = |i: usize, j: usize| &self.vectors[(j * self.nx + i) * self.frames..];
-        let (a, b, c, d) = (
-            node(i, j),
-            node(i + 1, j),
-            node(i, j + 1),
-            node(i + 1, j + 1),
+        (i, t.clamp(0.0, 1.0))
+    }
+
+    /// Every frame's shading vector on row `y` at each node column:
+    /// `out[i * frames + k]`, frame k's vector at node column i.
+    fn row_nodes(&self, y: usize) -> Vec<[f64; 3]> {
+        let (j, ty) = self.locate(y, self.ny, self.height);
+        let per_row = self.nx * self.frames;
+        let (above, below) = (
+            &self.vectors[j * per_row..(j + 1) * per_row],
+            &self.vectors[(j + 1) * per_row..(j + 2) * per_row],
         );
-        let weights = [
-            (1.0 - tx) * (1.0 - ty),
-            tx * (1.0 - ty),
-            (1.0 - tx) * ty,
-            tx * ty,
-        ];
+        above
+            .iter()
+            .zip(below)
+            .map(|(a, c)| std::array::from_fn(|m| (1.0 - ty) * a[m] + ty * c[m]))
+            .collect()
+    }
+
+    /// Every frame's shading vector at sample `(x, y)`, written into `out` (one per frame).
+    #[cfg(test)]
+    fn at(&self, x: usize, y: usize, out: &mut [[f64; 3]]) {
+        let nodes = self.row_nodes(y);
+        let (i, tx) = self.locate(x, self.nx, self.width);
+        let f = self.frames;
         for (k, o) in out.iter_mut().enumerate() {
-            *o = std::array::from_fn(|m| {
-                weights[0] * a[k][m]
-                    + weights[1] * b[k][m]
-                    + weights[2] * c[k][m]
-                    + weights[3] * d[k][m]
-            });
+            let (a, b) = (nodes[i * f + k], nodes[(i + 1) * f + k]);
+            *o = std::array::from_fn(|m| a[m] + tx * (b[m] - a[m]));
         }
+    }
+}
+
+/// One grid cell of one row: along it every frame's shading vector is linear in the fraction
+/// `t` of the way across, `s_k(t) = start_k + t * step_k`, so the normal matrix of a site with
+/// every frame usable, `sum_k s_k s_k^T`, is a quadratic in `t` whose coefficients the cell
+/// computes once. A site then costs its right-hand side and a 3x3 solve, not ten
+/// interpolations and outer products.
+struct RowCell {
+    start: Vec<[f64; 3]>,
+    step: Vec<[f64; 3]>,
+    /// `M(t) = m0 + t * m1 + t^2 * m2` over every frame.
+    m: [[[f64; 3]; 3]; 3],
+    /// `sum_k s_k[2]` = `flat0 + t * flat1`: the shading of a flat site.
+    flat: [f64; 2],
+}
+
+impl RowCell {
+    fn new(left: &[[f64; 3]], right: &[[f64; 3]]) -> Self {
+        let step: Vec<[f64; 3]> = left
+            .iter()
+            .zip(right)
+            .map(|(a, b)| std::array::from_fn(|m| b[m] - a[m]))
+            .collect();
+        let mut m = [[[0.0; 3]; 3]; 3];
+        for (a, d) in left.iter().zip(&step) {
+            for r in 0..3 {
+                for c in 0..3 {
+                    m[0][r][c] += a[r] * a[c];
+                    m[1][r][c] += a[r] * d[c] + d[r] * a[c];
+                    m[2][r][c] += d[r] * d[c];
+                }
+            }
+        }
+        let flat = [
+            left.iter().map(|a| a[2]).sum(),
+            step.iter().map(|d| d[2]).sum(),
+        ];
+        RowCell {
+            start: left.to_vec(),
+            step,
+            m,
+            flat,
+        }
+    }
+
+    /// Frame k's shading vector at fraction `t`.
+    fn vector(&self, k: usize, t: f64) -> [f64; 3] {
+        std::array::from_fn(|m| self.start[k][m] + t * self.step[k][m])
     }
 }
 
@@ -144,23 +196,52 @@ pub fn site_albedos(
 ) -> Vec<SiteFit> {
     let (w, h) = (frames[0].width, frames[0].height);
     let pattern = frames[0].pattern;
+    let n = frames.len();
+    // White balance as a product: 1 / colour, per frame and channel.
+    let inverse: Vec<[f64; 3]> = colours.iter().map(|g| g.map(|v| 1.0 / v as f64)).collect();
     let mut out = vec![SiteFit::BLACK; w * h];
     out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        let mut vectors = vec![[0.0f64; 3]; frames.len()];
+        let nodes = field.row_nodes(y);
+        let cells: Vec<RowCell> = (0..field.nx - 1)
+            .map(|i| RowCell::new(&nodes[i * n..(i + 1) * n], &nodes[(i + 1) * n..(i + 2) * n]))
+            .collect();
+        let mut samples = Vec::with_capacity(n);
         for (x, site) in row.iter_mut().enumerate() {
             let i = y * w + x;
             if sums[i] <= floor {
                 continue;
             }
-            field.at(x, y, &mut vectors);
+            let (c, t) = field.locate(x, field.nx, field.width);
+            let cell = &cells[c];
             let own = pattern[y % 2][x % 2] as usize;
-            let samples = frames
-                .iter()
-                .zip(colours)
-                .zip(&vectors)
-                .filter(|((f, _), _)| !f.saturated[i])
-                .map(|((f, g), s)| (s, f.values[i] as f64 / g[own] as f64));
-            *site = match fit_scaled_normal(samples) {
+            let value = |k: usize| frames[k].values[i] as f64 * inverse[k][own];
+            let fit = if frames.iter().any(|f| f.saturated[i]) {
+                samples.clear();
+                samples.extend(
+                    (0..n)
+                        .filter(|&k| !frames[k].saturated[i])
+                        .map(|k| (cell.vector(k, t), value(k))),
+                );
+                fit_scaled_normal(samples.iter().map(|(s, v)| (s, *v)))
+            } else {
+                // r = sum_k v_k s_k(t) = sum_k v_k start_k + t * sum_k v_k step_k.
+                let (mut r0, mut r1) = ([0.0f64; 3], [0.0f64; 3]);
+                for k in 0..n {
+                    let v = value(k);
+                    for m in 0..3 {
+                        r0[m] += v * cell.start[k][m];
+                        r1[m] += v * cell.step[k][m];
+                    }
+                }
+                let r = std::array::from_fn(|m| r0[m] + t * r1[m]);
+                let m = std::array::from_fn(|a| {
+                    std::array::from_fn(|b| {
+                        cell.m[0][a][b] + t * (cell.m[1][a][b] + t * cell.m[2][a][b])
+                    })
+                });
+                solve_normal_equations(m, r, n)
+            };
+            *site = match fit {
                 Some(b) => {
                     let a = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
                     let n = if a > 0.0 {
@@ -174,7 +255,7 @@ pub fn site_albedos(
                     }
                 }
                 None => {
-                    let flat: f64 = vectors.iter().map(|s| s[2]).sum();
+                    let flat = cell.flat[0] + t * cell.flat[1];
                     SiteFit {
                         albedo: if flat > 0.0 {
                             (sums[i] as f64 / flat) as f32
@@ -204,6 +285,12 @@ fn fit_scaled_normal<'a>(samples: impl Iterator<Item = (&'a [f64; 3], f64)>) -> 
         }
         count += 1;
     }
+    solve_normal_equations(m, r, count)
+}
+
+/// The `b` with `m b = r` for the normal equations `m` of `count` samples; `None` when fewer
+/// than three samples or shading vectors too close to a plane leave it undetermined.
+fn solve_normal_equations(m: [[f64; 3]; 3], r: [f64; 3], count: usize) -> Option<[f64; 3]> {
     if count < 3 {
         return None;
     }
@@ -268,6 +355,112 @@ mod tests {
         assert_eq!(fit_albedo(two), None);
         let flat = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]];
         assert_eq!(fit_albedo(flat.iter().map(|s| (s, 1.0))), None);
+    }
+
+    /// The definition [`site_albedos`] computes faster: every usable frame's shading vector
+    /// interpolated at the site, then a least-squares fit of them.
+    fn site_albedos_by_definition(
+        frames: &[LinearMosaic],
+        colours: &[[f32; 3]],
+        field: &ShadingField,
+        sums: &[f32],
+        floor: f32,
+    ) -> Vec<SiteFit> {
+        let (w, h) = (frames[0].width, frames[0].height);
+        let mut vectors = vec![[0.0; 3]; frames.len()];
+        (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                if sums[i] <= floor {
+                    return SiteFit::BLACK;
+                }
+                field.at(x, y, &mut vectors);
+                let own = frames[0].pattern[y % 2][x % 2] as usize;
+                let samples = frames
+                    .iter()
+                    .zip(colours)
+                    .zip(&vectors)
+                    .filter(|((f, _), _)| !f.saturated[i])
+                    .map(|((f, g), s)| (s, f.values[i] as f64 / g[own] as f64));
+                match fit_scaled_normal(samples) {
+                    Some(b) => {
+                        let a = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
+                        SiteFit {
+                            albedo: a as f32,
+                            normal: b.map(|v| (v / a) as f32),
+                        }
+                    }
+                    None => {
+                        let flat: f64 = vectors.iter().map(|s| s[2]).sum();
+                        SiteFit {
+                            albedo: (sums[i] as f64 / flat) as f32,
+                            normal: [0.0, 0.0, 1.0],
+                        }
+                    }
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_per_cell_fit_equals_the_fit_by_definition() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        let (w, h) = (37, 23);
+        // Lights whose direction and power change across the mosaic (near lights).
+        let base = lights();
+        let field = ShadingField::sample(w, h, 8, |x, y| {
+            Ok(base
+                .iter()
+                .map(|s| {
+                    [
+                        s[0] - 0.01 * x,
+                        s[1] + 0.02 * y,
+                        s[2] * (1.0 + 0.003 * (x + y)),
+                    ]
+                })
+                .collect())
+        })
+        .unwrap();
+        let colours: Vec<[f32; 3]> = (0..base.len())
+            .map(|k| [0.9 + 0.02 * k as f32, 1.0, 1.1 - 0.03 * k as f32])
+            .collect();
+        let mut frames: Vec<LinearMosaic> = (0..base.len())
+            .map(|_| LinearMosaic {
+                width: w,
+                height: h,
+                pattern: [[0, 1], [1, 2]],
+                values: (0..w * h).map(|_| rng.gen_range(0.0..1.0)).collect(),
+                // One site in twelve saturated per frame.
+                saturated: (0..w * h).map(|_| rng.gen_range(0..12) == 0).collect(),
+            })
+            .collect();
+        let mut sums: Vec<f32> = (0..w * h)
+            .map(|i| frames.iter().map(|f| f.values[i]).sum())
+            .collect();
+        sums[5] = 0.0; // a black site
+        for frame in &mut frames[2..] {
+            frame.saturated[9] = true; // two usable samples: no fit, the flat estimate
+        }
+        let got = site_albedos(&frames, &colours, &field, &sums, 1e-3);
+        let want = site_albedos_by_definition(&frames, &colours, &field, &sums, 1e-3);
+        // Both compute in f64 from the same inputs in another order (rounding ~1e-15 of a
+        // well-conditioned 3x3 system here) and round to f32 once: at most one f32 ulp apart.
+        let ulp = f32::EPSILON;
+        for (i, (a, b)) in got.iter().zip(&want).enumerate() {
+            assert!(
+                (a.albedo - b.albedo).abs() <= ulp * b.albedo.abs(),
+                "site {i}: {a:?} vs {b:?}"
+            );
+            for m in 0..3 {
+                assert!(
+                    (a.normal[m] - b.normal[m]).abs() <= ulp,
+                    "site {i}: {a:?} vs {b:?}"
+                );
+            }
+        }
+        assert_eq!(got[5], SiteFit::BLACK);
+        assert_eq!(got[9].normal, [0.0, 0.0, 1.0]);
     }
 
     #[test]
