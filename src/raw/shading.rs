@@ -122,8 +122,8 @@ impl ShadingField {
 /// every frame usable, `sum_k s_k s_k^T`, is a quadratic in `t` whose coefficients the cell
 /// computes once. A site then costs its right-hand side and a 3x3 solve, not ten
 /// interpolations and outer products.
-struct RowCell {
-    start: Vec<[f64; 3]>,
+struct RowCell<'a> {
+    start: &'a [[f64; 3]],
     step: Vec<[f64; 3]>,
     /// `M(t) = m0 + t * m1 + t^2 * m2` over every frame.
     m: [[[f64; 3]; 3]; 3],
@@ -131,8 +131,8 @@ struct RowCell {
     flat: [f64; 2],
 }
 
-impl RowCell {
-    fn new(left: &[[f64; 3]], right: &[[f64; 3]]) -> Self {
+impl<'a> RowCell<'a> {
+    fn new(left: &'a [[f64; 3]], right: &[[f64; 3]]) -> Self {
         let step: Vec<[f64; 3]> = left
             .iter()
             .zip(right)
@@ -153,11 +153,30 @@ impl RowCell {
             step.iter().map(|d| d[2]).sum(),
         ];
         RowCell {
-            start: left.to_vec(),
+            start: left,
             step,
             m,
             flat,
         }
+    }
+
+    /// The least-squares scaled normal at fraction `t` from every frame's white-balanced
+    /// sample `value(k)` ([`fit_scaled_normal`] with the cell's normal matrix).
+    fn fit_every_frame(&self, t: f64, value: impl Fn(usize) -> f64) -> Option<[f64; 3]> {
+        // r = sum_k v_k s_k(t) = sum_k v_k start_k + t * sum_k v_k step_k.
+        let (mut r0, mut r1) = ([0.0f64; 3], [0.0f64; 3]);
+        for (k, (start, step)) in self.start.iter().zip(self.step.iter()).enumerate() {
+            let v = value(k);
+            for m in 0..3 {
+                r0[m] += v * start[m];
+                r1[m] += v * step[m];
+            }
+        }
+        let r = std::array::from_fn(|m| r0[m] + t * r1[m]);
+        let m = std::array::from_fn(|a| {
+            std::array::from_fn(|b| self.m[0][a][b] + t * (self.m[1][a][b] + t * self.m[2][a][b]))
+        });
+        solve_normal_equations(m, r, self.start.len())
     }
 
     /// Frame k's shading vector at fraction `t`.
@@ -179,6 +198,32 @@ impl SiteFit {
         albedo: 0.0,
         normal: [0.0, 0.0, 1.0],
     };
+
+    /// A site's result from its fitted scaled normal `fit`; without one (not determined), its
+    /// white-balanced `sum` over the summed shading `flat` a flat site would have.
+    fn from_fit(fit: Option<[f64; 3]>, sum: f32, flat: f64) -> SiteFit {
+        match fit {
+            Some(b) => {
+                let a = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
+                SiteFit {
+                    albedo: a as f32,
+                    normal: if a > 0.0 {
+                        b.map(|v| (v / a) as f32)
+                    } else {
+                        [0.0, 0.0, 1.0]
+                    },
+                }
+            }
+            None => SiteFit {
+                albedo: if flat > 0.0 {
+                    (sum as f64 / flat) as f32
+                } else {
+                    0.0
+                },
+                normal: [0.0, 0.0, 1.0],
+            },
+        }
+    }
 }
 
 /// Each site's own-channel albedo `|b|` and normal from a least-squares fit of `b . s_k` to its
@@ -224,48 +269,10 @@ pub fn site_albedos(
                 );
                 fit_scaled_normal(samples.iter().map(|(s, v)| (s, *v)))
             } else {
-                // r = sum_k v_k s_k(t) = sum_k v_k start_k + t * sum_k v_k step_k.
-                let (mut r0, mut r1) = ([0.0f64; 3], [0.0f64; 3]);
-                for k in 0..n {
-                    let v = value(k);
-                    for m in 0..3 {
-                        r0[m] += v * cell.start[k][m];
-                        r1[m] += v * cell.step[k][m];
-                    }
-                }
-                let r = std::array::from_fn(|m| r0[m] + t * r1[m]);
-                let m = std::array::from_fn(|a| {
-                    std::array::from_fn(|b| {
-                        cell.m[0][a][b] + t * (cell.m[1][a][b] + t * cell.m[2][a][b])
-                    })
-                });
-                solve_normal_equations(m, r, n)
+                cell.fit_every_frame(t, value)
             };
-            *site = match fit {
-                Some(b) => {
-                    let a = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
-                    let n = if a > 0.0 {
-                        b.map(|v| (v / a) as f32)
-                    } else {
-                        [0.0, 0.0, 1.0]
-                    };
-                    SiteFit {
-                        albedo: a as f32,
-                        normal: n,
-                    }
-                }
-                None => {
-                    let flat = cell.flat[0] + t * cell.flat[1];
-                    SiteFit {
-                        albedo: if flat > 0.0 {
-                            (sums[i] as f64 / flat) as f32
-                        } else {
-                            0.0
-                        },
-                        normal: [0.0, 0.0, 1.0],
-                    }
-                }
-            };
+            let flat = cell.flat[0] + t * cell.flat[1];
+            *site = SiteFit::from_fit(fit, sums[i], flat);
         }
     });
     out
@@ -382,22 +389,8 @@ mod tests {
                     .zip(&vectors)
                     .filter(|((f, _), _)| !f.saturated[i])
                     .map(|((f, g), s)| (s, f.values[i] as f64 / g[own] as f64));
-                match fit_scaled_normal(samples) {
-                    Some(b) => {
-                        let a = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
-                        SiteFit {
-                            albedo: a as f32,
-                            normal: b.map(|v| (v / a) as f32),
-                        }
-                    }
-                    None => {
-                        let flat: f64 = vectors.iter().map(|s| s[2]).sum();
-                        SiteFit {
-                            albedo: (sums[i] as f64 / flat) as f32,
-                            normal: [0.0, 0.0, 1.0],
-                        }
-                    }
-                }
+                let flat: f64 = vectors.iter().map(|s| s[2]).sum();
+                SiteFit::from_fit(fit_scaled_normal(samples), sums[i], flat)
             })
             .collect()
     }
