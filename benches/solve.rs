@@ -2,7 +2,9 @@
 //! and each least-squares kernel on the same Lambertian frames, as megapixels per second and
 //! as a multiple of the floor. `PSSCAN_BENCH_MP` sets the scene size (default 4 MP);
 //! `PSSCAN_BENCH_ONLY` runs only variants whose name contains it; `PSSCAN_BENCH_REPEATS` sets
-//! the timed runs (default 5). Each solve is timed right after a floor measurement and its
+//! the timed runs (default 5); `PSSCAN_BENCH_SCENE` renders another scene (`shadows`, `sheen`,
+//! `shadows+sheen`) instead of the Lambertian one, where the default options' robust path
+//! does most of the work (the `default` row: `psscan solve`'s options). Each solve is timed right after a floor measurement and its
 //! ratio taken against that floor, so load from other processes shifts both alike; the table
 //! gives the minimum and median of these paired ratios, and the page faults of one solve.
 //! `psscan bench` is the full run-time-against-error benchmark.
@@ -58,15 +60,20 @@ fn main() {
     let mp = env("PSSCAN_BENCH_MP").unwrap_or(4.0);
     let repeats = env("PSSCAN_BENCH_REPEATS").map_or(5, |r| (r as usize).max(1));
     let only = std::env::var("PSSCAN_BENCH_ONLY").unwrap_or_default();
+    let scene_name = std::env::var("PSSCAN_BENCH_SCENE").unwrap_or("lambertian".into());
+    let Some(scene) = SceneKind::ALL.into_iter().find(|k| k.name() == scene_name) else {
+        panic!("PSSCAN_BENCH_SCENE={scene_name}: not a scene (lambertian, shadows, sheen, shadows+sheen)");
+    };
     let rig = Rig::default_rig();
-    let (_scene, frames) = render_scene(&rig, SceneKind::Lambertian, mp, &Silent).unwrap();
+    let (_scene, frames) = render_scene(&rig, scene, mp, &Silent).unwrap();
     let pixels = (frames.width * frames.height) as f64;
     let floor = || {
         std::hint::black_box(read_all(&frames));
     };
     floor();
     println!(
-        "{}x{} ({:.1} MP), {} threads, {repeats} runs each",
+        "{} scene, {}x{} ({:.1} MP), {} threads, {repeats} runs each",
+        scene.name(),
         frames.width,
         frames.height,
         pixels / 1e6,
@@ -84,7 +91,13 @@ fn main() {
         exposure: 1.0,
         mask: None,
     };
-    for variant in bench::variants() {
+    // `psscan solve`'s own options beside the benchmark's variants.
+    let default = bench::Variant {
+        name: "default".into(),
+        options: solve::SolveOptions::default(),
+        ..bench::variants().swap_remove(0)
+    };
+    for variant in std::iter::once(default).chain(bench::variants()) {
         // Every variant is timed with fresh and with reused outputs below.
         if variant.options.kernel.method() == solve::Method::Svd
             || variant.reuse_outputs

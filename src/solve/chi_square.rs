@@ -4,7 +4,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::measure::{condition_of, Fit, Measurement};
+use super::measure::{condition_of, Fit, Gram, Measurement};
 use super::PixelFit;
 
 /// The chi-square test of a luminance fit against the noise model.
@@ -101,14 +101,14 @@ pub(super) struct WeightedFit {
 }
 
 pub(super) fn weighted_fit(chi: &ChiSquare, measurements: &[Measurement]) -> Option<WeightedFit> {
-    let mut a = Matrix3::zeros();
+    let mut a = Gram::default();
     let mut b = Vector3::zeros();
     for m in measurements {
         let w = 1.0 / chi.variance(m);
-        a += m.l * m.l.transpose() * w;
+        a.add(&m.l, w);
         b += m.l * (m.lum * w);
     }
-    let cov = a.try_inverse()?;
+    let cov = a.matrix().try_inverse()?;
     let n_lum = cov * b;
     let chi2 = chi.statistic(measurements, &n_lum);
     Some(WeightedFit { n_lum, cov, chi2 })

@@ -41,16 +41,17 @@ pub(super) struct Fit {
 
 /// Least squares through the normal equations, inverted in closed form.
 pub(super) fn fit_normal_equations(measurements: &[Measurement]) -> Option<Fit> {
-    let mut a = Matrix3::zeros();
+    let mut a = Gram::default();
     let mut b_lum = Vector3::zeros();
     let mut b_rgb = [Vector3::zeros(); 3];
     for m in measurements {
-        a += m.l * m.l.transpose();
+        a.add(&m.l, 1.0);
         b_lum += m.l * m.lum;
         for c in 0..3 {
             b_rgb[c] += m.l * m.rgb[c];
         }
     }
+    let a = a.matrix();
     let a_inv = a.try_inverse()?;
     // Frobenius-norm condition number of A = L^T L, square-rooted to speak of L.
     let condition = (a.norm() * a_inv.norm()).sqrt();
@@ -102,7 +103,87 @@ pub(super) fn fit_svd(measurements: &[Measurement]) -> Option<Fit> {
 
 /// Condition number of the lights' (unweighted) matrix, as the kernel reports it.
 pub(super) fn condition_of(measurements: &[Measurement]) -> f64 {
-    let a: Matrix3<f64> = measurements.iter().map(|m| m.l * m.l.transpose()).sum();
+    let mut gram = Gram::default();
+    for m in measurements {
+        gram.add(&m.l, 1.0);
+    }
+    let a = gram.matrix();
     a.try_inverse()
         .map_or(f64::INFINITY, |inv| (a.norm() * inv.norm()).sqrt())
+}
+
+/// A running sum of weighted outer products `w l l^T` of light directions, its six distinct
+/// entries only: the fits' inner loops ran over all nine. Each entry is summed in the order
+/// the full outer products summed it (and `x * y == y * x` exactly), so [`Gram::matrix`] is
+/// the same matrix to the bit.
+#[derive(Clone, Copy, Default)]
+pub(super) struct Gram {
+    xx: f64,
+    xy: f64,
+    xz: f64,
+    yy: f64,
+    yz: f64,
+    zz: f64,
+}
+
+impl Gram {
+    /// Adds `w l l^T` (a weight of 1 adds `l l^T` exactly).
+    #[inline(always)]
+    pub fn add(&mut self, l: &Vector3<f64>, w: f64) {
+        self.xx += l.x * l.x * w;
+        self.xy += l.x * l.y * w;
+        self.xz += l.x * l.z * w;
+        self.yy += l.y * l.y * w;
+        self.yz += l.y * l.z * w;
+        self.zz += l.z * l.z * w;
+    }
+
+    /// The symmetric matrix.
+    #[inline(always)]
+    pub fn matrix(&self) -> Matrix3<f64> {
+        Matrix3::new(
+            self.xx, self.xy, self.xz, self.xy, self.yy, self.yz, self.xz, self.yz, self.zz,
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The six-entry sum is the sum of full outer products, bit for bit, weighted or not.
+    #[test]
+    fn the_gram_sum_is_the_outer_products_sum() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(9);
+        for _ in 0..100 {
+            let lights: Vec<(Vector3<f64>, f64)> = (0..rng.gen_range(1..40))
+                .map(|_| {
+                    let l = Vector3::new(
+                        rng.gen_range(-1.0..1.0),
+                        rng.gen_range(-1.0..1.0),
+                        rng.gen_range(0.0..1.0),
+                    );
+                    (l, rng.gen_range(0.01..1e6))
+                })
+                .collect();
+            for weighted in [false, true] {
+                let mut full = Matrix3::zeros();
+                let mut gram = Gram::default();
+                for (l, w) in &lights {
+                    if weighted {
+                        full += l * l.transpose() * *w;
+                        gram.add(l, *w);
+                    } else {
+                        full += l * l.transpose();
+                        gram.add(l, 1.0);
+                    }
+                }
+                let got = gram.matrix();
+                for (a, b) in got.iter().zip(full.iter()) {
+                    assert_eq!(a.to_bits(), b.to_bits(), "{got} vs {full}");
+                }
+            }
+        }
+    }
 }
