@@ -94,7 +94,7 @@ fn main() {
     // `psscan solve`'s own options beside the benchmark's variants.
     let default = bench::Variant {
         name: "default".into(),
-        options: solve::SolveOptions::default(),
+        options: solve::SolveOptions::default().with_default_kernel(),
         ..bench::variants().swap_remove(0)
     };
     for variant in std::iter::once(default).chain(bench::variants()) {

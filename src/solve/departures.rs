@@ -14,7 +14,7 @@
 
 use nalgebra::Vector3;
 
-use super::measure::{fit_normal_equations, Fit, Measurement};
+use super::measure::{fit_normal_equations, Fit, Gram, Measurement};
 use super::PixelFit;
 
 /// Consistency factor of the MAD for a normal distribution.
@@ -285,40 +285,82 @@ fn search_triples<const AVX2: bool>(
     best.map(|(_, g)| g)
 }
 
-/// Least squares on the readings left after dropping `trim` of them at each end.
+/// Least squares on the readings left after dropping `trim` of them at each end. The
+/// readings are ordered through `order` (brightness and position) rather than moved: the same
+/// stable order, so the same sums as sorting the readings themselves.
 fn trimmed_start(
     measurements: &[Measurement],
     trim: f64,
-    kept: &mut Vec<Measurement>,
+    order: &mut Vec<(f64, u16)>,
 ) -> Option<Vector3<f64>> {
-    kept.clear();
-    kept.extend_from_slice(measurements);
-    kept.sort_by(|a, b| a.lum.total_cmp(&b.lum));
-    let drop = ((trim * kept.len() as f64).round() as usize).min(kept.len().saturating_sub(4) / 2);
-    kept.truncate(kept.len() - drop);
-    kept.drain(..drop);
-    fit_normal_equations(kept).map(|f| f.n_lum)
+    order.clear();
+    order.extend(
+        measurements
+            .iter()
+            .enumerate()
+            .map(|(k, m)| (m.lum, k as u16)),
+    );
+    order.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let n = order.len();
+    let drop = ((trim * n as f64).round() as usize).min(n.saturating_sub(4) / 2);
+    luminance_normal(
+        order[drop..n - drop]
+            .iter()
+            .map(|&(_, k)| &measurements[k as usize]),
+    )
+}
+
+/// The least-squares luminance normal of `measurements` alone, as `fit_normal_equations`
+/// computes it (the same sums in the same order, the same inverse: the same bits, and `None`
+/// where it gives `None`) without the colour, condition and covariance the data-scaled fit's
+/// rounds do not use.
+fn luminance_normal<'a>(
+    measurements: impl Iterator<Item = &'a Measurement>,
+) -> Option<Vector3<f64>> {
+    let mut a = Gram::default();
+    let mut b = Vector3::zeros();
+    for m in measurements {
+        a.add(&m.l, 1.0);
+        b += m.l * m.lum;
+    }
+    Some(a.matrix().try_inverse()? * b)
+}
+
+/// The data-scaled fit's buffers, reused across pixels.
+#[derive(Default)]
+pub(super) struct Buffers {
+    /// Every usable light while the rounds keep a subset.
+    all: Vec<Measurement>,
+    /// The lights a round keeps.
+    candidate: Vec<Measurement>,
+    /// Residuals and variances for the medians.
+    scratch: Vec<f64>,
+    /// The trimmed start's order of the readings.
+    order: Vec<(f64, u16)>,
 }
 
 /// The data-scaled fit of `measurements`, or `None` where the sensor model explains the
 /// residuals (or no robust start exists): the caller's noise-model rejection decides there.
-/// On success leaves the kept lights in `measurements`, on `None` every light as it came;
-/// `all` is a buffer.
+/// On success leaves the kept lights in `measurements`, on `None` every light as it came.
 pub(super) fn fit(
     tuning: &Departures,
     measurements: &mut Vec<Measurement>,
-    all: &mut Vec<Measurement>,
-    candidate: &mut Vec<Measurement>,
-    scratch: &mut Vec<f64>,
+    buffers: &mut Buffers,
     least_squares: &Vector3<f64>,
 ) -> Option<Fit> {
+    let Buffers {
+        all,
+        candidate,
+        scratch,
+        order,
+    } = buffers;
     let m = measurements.len();
     if m < 5 {
         return None;
     }
     // The trimmed fit decides cheaply whether the noise model explains the pixel; only then
     // are the minimal subsets searched for the start.
-    let trimmed = trimmed_start(measurements, tuning.trim, all).unwrap_or(*least_squares);
+    let trimmed = trimmed_start(measurements, tuning.trim, order).unwrap_or(*least_squares);
     let scale = residual_scale(measurements, &trimmed, scratch);
     // The median deviation is the root of the median variance (the root is monotone).
     scratch.clear();
@@ -336,7 +378,9 @@ pub(super) fn fit(
     all.clear();
     all.extend_from_slice(measurements);
     let mut g = start;
-    let mut result = None;
+    // Whether a round fitted a subset (then left in `measurements`); the rounds need only
+    // its luminance normal, the full fit is taken once at the end.
+    let mut fitted = false;
     // The residual scale of the latest fit on its own lights (before the noise floor).
     let mut fitted_scale = f64::INFINITY;
     for _ in 0..ROUNDS {
@@ -349,16 +393,16 @@ pub(super) fn fit(
                 && r >= -tuning.dark_limit * scale
                 && r <= tuning.bright_limit * scale
         }));
-        if candidate.len() < 4 || (result.is_some() && same_lights(candidate, measurements)) {
+        if candidate.len() < 4 || (fitted && same_lights(candidate, measurements)) {
             // Too few lights, or the same lights as the fit already has: settled.
             break;
         }
-        let Some(fit) = fit_normal_equations(candidate) else {
+        let Some(normal) = luminance_normal(candidate.iter()) else {
             break;
         };
         std::mem::swap(measurements, candidate);
-        g = fit.n_lum;
-        result = Some(fit);
+        g = normal;
+        fitted = true;
         fitted_scale = residual_scale(measurements, &g, scratch);
         scale = fitted_scale.max(noise);
     }
@@ -367,8 +411,12 @@ pub(super) fn fit(
     // Lambertian surface), and the noise-model rejection judges them more finely than a scale
     // taken from the data (the early test above can only look at all lights, whose MAD a
     // contaminated start inflates).
-    let explained = result.is_some() && fitted_scale <= tuning.model_scale_factor * noise;
-    match result.filter(|_| !explained) {
+    let explained = fitted && fitted_scale <= tuning.model_scale_factor * noise;
+    // The last round's lights invert as they did in the round.
+    let result = (fitted && !explained)
+        .then(|| fit_normal_equations(measurements))
+        .flatten();
+    match result {
         Some(mut fit) => {
             fit.kind = if measurements.len() < all.len() {
                 PixelFit::Robust
@@ -416,14 +464,11 @@ mod tests {
     }
 
     fn solve(measurements: &mut Vec<Measurement>) -> Option<Fit> {
-        let (mut all, mut kept, mut scratch) = (Vec::new(), Vec::new(), Vec::new());
         let ls = fit_normal_equations(measurements).unwrap().n_lum;
         fit(
             &Departures::default(),
             measurements,
-            &mut all,
-            &mut kept,
-            &mut scratch,
+            &mut Buffers::default(),
             &ls,
         )
     }

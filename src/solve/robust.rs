@@ -51,12 +51,10 @@ pub(super) struct Buffers {
     sheen: Vec<Measurement>,
     /// All usable lights while the sheen rejection alternates with the sheen fit.
     usable: Vec<Measurement>,
-    /// The data-scaled fit's usable lights, candidate inliers and residuals.
-    departures_all: Vec<Measurement>,
+    /// The data-scaled fit's buffers.
+    departures: departures::Buffers,
     /// All usable lights while the noise-model rejection and the data-scaled fit are compared.
     noise_usable: Vec<Measurement>,
-    departures_kept: Vec<Measurement>,
-    residuals: Vec<f64>,
 }
 
 /// True when `n_lum` predicts a positive reading for every light.
@@ -167,9 +165,7 @@ fn noise_or_data_scaled(
     let data_scaled = departures::fit(
         &departures::Departures::default(),
         measurements,
-        &mut buffers.departures_all,
-        &mut buffers.departures_kept,
-        &mut buffers.residuals,
+        &mut buffers.departures,
         &least_squares.n_lum,
     );
     if let Some(fit) = data_scaled {
