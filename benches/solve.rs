@@ -4,7 +4,8 @@
 //! `PSSCAN_BENCH_ONLY` runs only variants whose name contains it; `PSSCAN_BENCH_REPEATS` sets
 //! the timed runs (default 5); `PSSCAN_BENCH_SCENE` renders another scene (`shadows`, `sheen`,
 //! `shadows+sheen`) instead of the Lambertian one, where the default options' robust path
-//! does most of the work (the `default` row: `psscan solve`'s options). Each solve is timed right after a floor measurement and its
+//! does most of the work (the `default` row: `psscan solve`'s options). Each solve is timed
+//! right after a floor measurement and its
 //! ratio taken against that floor, so load from other processes shifts both alike; the table
 //! gives the minimum and median of these paired ratios, and the page faults of one solve.
 //! `psscan bench` is the full run-time-against-error benchmark.

@@ -92,17 +92,12 @@ fn median(values: &mut [f64]) -> f64 {
 const SMALL_MEDIAN: usize = 16;
 
 /// The `mid`-th smallest of at most [`SMALL_MEDIAN`] values in `f64::total_cmp`'s order: each
-/// value's key is the integer that order compares (its bits, the magnitude bits flipped for
-/// negative values), so equal keys are equal values and the result is the selection's.
+/// value's key is the integer that order compares ([`total_order_key`]), so equal keys are
+/// equal values and the result is the selection's.
 fn small_median(values: &[f64], mid: usize) -> f64 {
-    let key = |v: f64| {
-        let bits = v.to_bits() as i64;
-        bits ^ (((bits >> 63) as u64) >> 1) as i64
-    };
     let mut keys = [0i64; SMALL_MEDIAN];
-    let n = values.len();
     for (k, &v) in values.iter().enumerate() {
-        let value = key(v);
+        let value = total_order_key(v.to_bits() as i64);
         let mut at = k;
         while at > 0 && keys[at - 1] > value {
             keys[at] = keys[at - 1];
@@ -110,10 +105,15 @@ fn small_median(values: &[f64], mid: usize) -> f64 {
         }
         keys[at] = value;
     }
-    debug_assert!(mid < n);
-    let bits = keys[mid];
+    debug_assert!(mid < values.len());
     // The key map is its own inverse.
-    f64::from_bits((bits ^ (((bits >> 63) as u64) >> 1) as i64) as u64)
+    f64::from_bits(total_order_key(keys[mid]) as u64)
+}
+
+/// `f64::total_cmp`'s integer key of a value's bits: the magnitude bits flipped for negative
+/// values. Applied to a key it gives the bits back.
+fn total_order_key(bits: i64) -> i64 {
+    bits ^ (((bits >> 63) as u64) >> 1) as i64
 }
 
 /// The most lights [`best_triple`] searches (its readings are kept in arrays of this size).
