@@ -530,6 +530,9 @@ mod tests {
                 (fast - plain).norm() <= 1e-9 * plain.norm(),
                 "{fast} vs {plain}"
             );
+            // The portable count picks the same triple as the one `best_triple` dispatched to.
+            let portable = search_triples::<false>(&m, &mut Vec::new()).unwrap();
+            assert_eq!(portable, fast);
         }
     }
 
