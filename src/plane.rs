@@ -238,12 +238,113 @@ impl RgbPlanes {
 
 /// One photograph taken under one light: its linear RGB values and, where the decoder knows
 /// it, which pixels were saturated (such a pixel carries no usable value for this light).
+///
+/// A full-resolution RAW frame stores one sample per pixel and takes its missing channels
+/// from colour ratios that every frame of its stack shares ([`CfaColour`]): ten 16 MP frames
+/// then take 0.8 GB rather than 1.9 GB. Read such a frame's values with [`Self::rgb_at`],
+/// [`CfaColour::rgb`] or [`Self::to_planes`]; its `rgb.r` and `rgb.b` are empty.
 #[derive(Clone, Debug)]
 pub struct LightFrame {
-    /// The linear colour planes.
+    /// The linear colour planes; with `cfa`, `g` holds every pixel's own CFA sample (whatever
+    /// its channel) and `r` and `b` are empty.
     pub rgb: RgbPlanes,
     /// Pixels clipped at the sensor's white level in this light, when the decoder knows.
     pub saturated: Option<Mask>,
+    /// How the missing channels follow from each pixel's own sample, for a frame stored as
+    /// one CFA sample per pixel (`None`: `rgb` holds all three planes).
+    pub cfa: Option<CfaColour>,
+}
+
+impl LightFrame {
+    /// A frame of three full planes.
+    pub fn from_rgb(rgb: RgbPlanes, saturated: Option<Mask>) -> Self {
+        LightFrame {
+            rgb,
+            saturated,
+            cfa: None,
+        }
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> usize {
+        self.rgb.g.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> usize {
+        self.rgb.g.height
+    }
+
+    /// The three channels of pixel (`x`, `y`), however the frame stores them.
+    #[inline]
+    pub fn rgb_at(&self, x: usize, y: usize) -> [f32; 3] {
+        let i = y * self.width() + x;
+        match &self.cfa {
+            None => [self.rgb.r.data[i], self.rgb.g.data[i], self.rgb.b.data[i]],
+            Some(cfa) => cfa.rgb(self.rgb.g.data[i], i, cfa.own(x, y)),
+        }
+    }
+
+    /// The frame as three full planes: borrowed when it has them, built from the own samples
+    /// and the shared ratios otherwise (for the stages that want planes and run on a small or
+    /// binned image: cropping, binning, previews).
+    pub fn to_planes(&self) -> std::borrow::Cow<'_, RgbPlanes> {
+        match &self.cfa {
+            None => std::borrow::Cow::Borrowed(&self.rgb),
+            Some(_) => {
+                std::borrow::Cow::Owned(self.window_planes(0, 0, self.width(), self.height()))
+            }
+        }
+    }
+
+    /// Three planes of the `width x height` window whose top-left pixel is (`x0`, `y0`)
+    /// (which must lie inside the frame).
+    pub fn window_planes(&self, x0: usize, y0: usize, width: usize, height: usize) -> RgbPlanes {
+        let mut out = RgbPlanes::new(width, height);
+        out.par_rows_mut(|y, [r, g, b]| {
+            for x in 0..width {
+                [r[x], g[x], b[x]] = self.rgb_at(x0 + x, y0 + y);
+            }
+        });
+        out
+    }
+}
+
+/// The colour of a frame stored as one CFA sample per pixel: channel `c` of pixel `i` is
+/// its own sample `v` when `c` is the pixel's own channel, else
+/// `v * ratios[c][i] * colour[c] / colour[own]`. The `ratios` (each channel over the pixel's
+/// own, the same in every frame of a stack) are shared; `colour` is this frame's illuminant's
+/// raw colour (see `raw::develop_stack`).
+#[derive(Clone, Debug)]
+pub struct CfaColour {
+    /// The CFA pattern: `pattern[y % 2][x % 2]` is pixel (x, y)'s own channel.
+    pub pattern: [[u8; 2]; 2],
+    /// Per pixel, each channel's ratio to its own channel; shared by the frames of a stack.
+    pub ratios: std::sync::Arc<RgbPlanes>,
+    /// This frame's illuminant colour (raw R, G, B).
+    pub colour: [f32; 3],
+}
+
+impl CfaColour {
+    /// Pixel (`x`, `y`)'s own channel.
+    #[inline(always)]
+    pub fn own(&self, x: usize, y: usize) -> usize {
+        self.pattern[y % 2][x % 2] as usize
+    }
+
+    /// Pixel `i`'s three channels from its own sample `v` of channel `own`. The arithmetic
+    /// (and so every bit) is what the stack demosaic wrote into full planes.
+    #[inline(always)]
+    pub fn rgb(&self, v: f32, i: usize, own: usize) -> [f32; 3] {
+        let ratios = self.ratios.channels();
+        std::array::from_fn(|c| {
+            if c == own {
+                v
+            } else {
+                v * ratios[c].data[i] * self.colour[c] / self.colour[own]
+            }
+        })
+    }
 }
 
 /// A decoded capture: one frame per light, all the same size, plus where they sit on the
@@ -264,7 +365,13 @@ impl Frames {
     /// Checks that every frame has the frames' size, so the solver can index blindly.
     pub fn validate(&self) -> Result<()> {
         for (k, frame) in self.lights.iter().enumerate() {
-            for plane in frame.rgb.channels() {
+            let planes = match &frame.cfa {
+                None => frame.rgb.channels().to_vec(),
+                Some(cfa) => std::iter::once(&frame.rgb.g)
+                    .chain(cfa.ratios.channels())
+                    .collect(),
+            };
+            for plane in planes {
                 if plane.width != self.width
                     || plane.height != self.height
                     || plane.len() != self.width * self.height
@@ -307,15 +414,83 @@ mod tests {
             width: 4,
             height: 3,
             window: SensorWindow::FULL,
-            lights: vec![LightFrame {
-                rgb: RgbPlanes::new(4, 3),
-                saturated: None,
-            }],
+            lights: vec![LightFrame::from_rgb(RgbPlanes::new(4, 3), None)],
         };
         assert!(frames.validate().is_ok());
         frames.lights[0].rgb.g = Plane::new(3, 3, 0.0);
         let err = frames.validate().unwrap_err().to_string();
         assert!(err.contains("light 0"), "{err}");
+    }
+
+    /// A 4x3 CFA frame (RGGB) whose ratios and colour make every channel distinct.
+    fn cfa_frame() -> LightFrame {
+        let (w, h) = (4, 3);
+        let sample = Plane::from_vec(w, h, (0..w * h).map(|i| 1.0 + i as f32).collect()).unwrap();
+        let mut ratios = RgbPlanes::new(w, h);
+        ratios.par_rows_mut(|y, mut rows| {
+            for x in 0..w {
+                for (c, row) in rows.iter_mut().enumerate() {
+                    row[x] = 0.5 + 0.1 * (c + x + 3 * y) as f32;
+                }
+            }
+        });
+        LightFrame {
+            rgb: RgbPlanes {
+                r: Plane::new(0, 0, 0.0),
+                g: sample,
+                b: Plane::new(0, 0, 0.0),
+            },
+            saturated: None,
+            cfa: Some(CfaColour {
+                pattern: [[0, 1], [1, 2]],
+                ratios: std::sync::Arc::new(ratios),
+                colour: [0.8, 1.0, 1.25],
+            }),
+        }
+    }
+
+    #[test]
+    fn a_cfa_frame_keeps_its_own_sample_and_scales_the_others() {
+        let f = cfa_frame();
+        let ratios = f.cfa.as_ref().unwrap().ratios.clone();
+        let colour = [0.8f32, 1.0, 1.25];
+        let planes = f.to_planes();
+        for y in 0..3 {
+            for x in 0..4 {
+                let i = y * 4 + x;
+                let own = [[0, 1], [1, 2]][y % 2][x % 2];
+                let v = 1.0 + i as f32;
+                let want: [f32; 3] = std::array::from_fn(|c| {
+                    if c == own {
+                        v
+                    } else {
+                        v * ratios.channels()[c].data[i] * colour[c] / colour[own]
+                    }
+                });
+                assert_eq!(f.rgb_at(x, y), want, "({x}, {y})");
+                assert_eq!([0, 1, 2].map(|c| planes.channels()[c].data[i]), want);
+            }
+        }
+        // A window is the same pixels, whatever its CFA phase.
+        let window = f.window_planes(1, 1, 3, 2);
+        for (y, x) in [(0, 0), (1, 2), (0, 1)] {
+            let got = [0, 1, 2].map(|c| window.channels()[c].data[y * 3 + x]);
+            assert_eq!(got, f.rgb_at(x + 1, y + 1));
+        }
+    }
+
+    #[test]
+    fn a_cfa_frame_with_ratios_of_another_size_is_rejected() {
+        let mut frame = cfa_frame();
+        let frames = |frame: LightFrame| Frames {
+            width: 4,
+            height: 3,
+            window: SensorWindow::FULL,
+            lights: vec![frame],
+        };
+        assert!(frames(frame.clone()).validate().is_ok());
+        frame.cfa.as_mut().unwrap().ratios = std::sync::Arc::new(RgbPlanes::new(4, 2));
+        assert!(frames(frame).validate().is_err());
     }
 
     #[test]

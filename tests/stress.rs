@@ -170,6 +170,7 @@ fn frames(case: &Case) -> Frames {
             LightFrame {
                 rgb,
                 saturated: Some(saturated),
+                cfa: None,
             }
         })
         .collect();

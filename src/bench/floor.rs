@@ -12,7 +12,7 @@ pub fn input_bytes(frames: &Frames) -> usize {
         .lights
         .iter()
         .map(|f| {
-            3 * f.rgb.r.len() * std::mem::size_of::<f32>()
+            f.rgb.channels().iter().map(|p| p.len()).sum::<usize>() * std::mem::size_of::<f32>()
                 + f.saturated.as_ref().map_or(0, |m| m.data.len())
         })
         .sum()
@@ -28,7 +28,8 @@ pub fn read_all(frames: &Frames) -> f64 {
             let mut acc = [0f32; 16];
             let mut count = 0usize;
             for f in &frames.lights {
-                for plane in f.rgb.channels() {
+                // A CFA frame's empty R and B planes hold nothing to read.
+                for plane in f.rgb.channels().into_iter().filter(|p| !p.data.is_empty()) {
                     sum_row(&plane.data[y * w..(y + 1) * w], &mut acc);
                 }
                 if let Some(m) = &f.saturated {

@@ -79,7 +79,8 @@ pub fn run(rig: &Rig, frames: &Frames, scene: &Scene, options: &BenchOptions) ->
         let mut out = std::io::BufWriter::with_capacity(1 << 22, file);
         for c in 0..3 {
             for f in &frames.lights {
-                let plane = f.rgb.channels()[c];
+                let planes = f.to_planes();
+                let plane = planes.channels()[c];
                 for v in &plane.data {
                     out.write_all(&v.to_le_bytes())
                         .map_err(|e| Error::io(&data_path, e))?;

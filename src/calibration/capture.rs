@@ -424,6 +424,7 @@ fn bin_frames(frames: Frames, step: f64) -> Result<Frames> {
             Ok(LightFrame {
                 rgb: RgbPlanes { r, g, b },
                 saturated,
+                cfa: None,
             })
         })
         .collect::<Result<Vec<_>>>()?;

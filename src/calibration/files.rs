@@ -145,6 +145,7 @@ pub fn load_linear(path: &Path, levels: &Levels) -> Result<LightFrame> {
             Ok(LightFrame {
                 rgb,
                 saturated: Some(saturated),
+                cfa: None,
             })
         }
         "png" | "tif" | "tiff" => Ok(read_dn_image(path)?.to_light_frame(levels)),

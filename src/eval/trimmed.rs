@@ -5,7 +5,7 @@
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use crate::plane::{Frames, Mask, Plane};
+use crate::plane::{Frames, Mask};
 use crate::solve::LUMINANCE_WEIGHTS;
 
 /// Fraction of the readings dropped at each end.
@@ -39,10 +39,11 @@ pub fn trimmed_normals(
                 return None;
             }
             readings.clear();
+            let (x, y) = (i % frames.width, i / frames.width);
             for (k, frame) in frames.lights.iter().enumerate() {
-                let planes: [&Plane; 3] = frame.rgb.channels();
+                let rgb = frame.rgb_at(x, y);
                 let lum: f64 = (0..3)
-                    .map(|c| LUMINANCE_WEIGHTS[c] * planes[c].data[i] as f64 / intensities[k][c])
+                    .map(|c| LUMINANCE_WEIGHTS[c] * rgb[c] as f64 / intensities[k][c])
                     .sum();
                 readings.push((lum, k));
             }
@@ -103,6 +104,7 @@ mod tests {
                     LightFrame {
                         rgb,
                         saturated: None,
+                        cfa: None,
                     }
                 })
                 .collect(),

@@ -456,6 +456,7 @@ mod tests {
             data: FrameData::Rgb(LightFrame {
                 rgb: crate::plane::RgbPlanes::new(2, 2),
                 saturated: None,
+                cfa: None,
             }),
             meta: None,
             levels: Levels {

@@ -64,6 +64,7 @@ impl DnImage {
         LightFrame {
             rgb,
             saturated: Some(saturated),
+            cfa: None,
         }
     }
 }

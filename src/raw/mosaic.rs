@@ -318,6 +318,7 @@ impl LinearMosaic {
         LightFrame {
             rgb,
             saturated: Some(saturated),
+            cfa: None,
         }
     }
 }

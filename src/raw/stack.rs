@@ -8,7 +8,9 @@ use super::hue::colour_ratios;
 use super::mosaic::{bilinear, LinearMosaic, Mosaic, Resolution};
 use super::shading::{site_albedos, ShadingField};
 use crate::error::{Error, Result};
-use crate::plane::{LightFrame, Mask, Plane, RgbPlanes};
+use std::sync::Arc;
+
+use crate::plane::{CfaColour, LightFrame, Mask, Plane, RgbPlanes};
 
 /// Develops a stack of frames of one static scene, each lit by an illuminant of colour
 /// `illuminants[k]` (the raw R, G, B response to it; `None`: all the same colour).
@@ -122,41 +124,28 @@ fn develop_full(
         }
         None => bilinear_ratios(w, h, pattern, &sum, floor),
     };
-    let ratios = ratios.channels();
+    // Every frame keeps its samples and shares the ratios: its missing channels are computed
+    // where they are read (`CfaColour::rgb`), so the stack takes one plane per frame, not three.
+    let ratios = Arc::new(ratios);
     frames
         .into_iter()
         .zip(colours)
-        .map(|(frame, colour)| {
-            // The frame's samples become its green plane in place (each pixel's sample is
-            // read before its green value is written): a third less fresh memory per frame.
-            let mut rgb = RgbPlanes {
-                r: Plane::new(w, h, 0.0),
+        .map(|(frame, colour)| LightFrame {
+            rgb: RgbPlanes {
+                r: Plane::new(0, 0, 0.0),
                 g: Plane::from_vec(w, h, frame.values).expect("a mosaic's samples fill it"),
-                b: Plane::new(w, h, 0.0),
-            };
-            rgb.par_rows_mut(|y, [r, g, b]| {
-                for x in 0..w {
-                    let i = y * w + x;
-                    let own = pattern[y % 2][x % 2] as usize;
-                    let v = g[x];
-                    let value = |c: usize| {
-                        if c == own {
-                            v
-                        } else {
-                            v * ratios[c].data[i] * colour[c] / colour[own]
-                        }
-                    };
-                    (r[x], g[x], b[x]) = (value(0), value(1), value(2));
-                }
-            });
-            LightFrame {
-                rgb,
-                saturated: Some(Mask {
-                    width: w,
-                    height: h,
-                    data: frame.saturated,
-                }),
-            }
+                b: Plane::new(0, 0, 0.0),
+            },
+            saturated: Some(Mask {
+                width: w,
+                height: h,
+                data: frame.saturated,
+            }),
+            cfa: Some(CfaColour {
+                pattern,
+                ratios: Arc::clone(&ratios),
+                colour: *colour,
+            }),
         })
         .collect()
 }
@@ -197,7 +186,12 @@ impl Mosaic {
     /// neighbourhood; see [`develop_stack`]).
     pub fn develop(&self, resolution: Resolution) -> Result<LightFrame> {
         let mut frames = develop_stack(vec![self.linearize()?], None, None, resolution)?;
-        Ok(frames.pop().expect("one frame in, one out"))
+        let frame = frames.pop().expect("one frame in, one out");
+        // One frame shares its ratios with nothing: three planes are what its users want.
+        Ok(LightFrame::from_rgb(
+            frame.to_planes().into_owned(),
+            frame.saturated,
+        ))
     }
 }
 
@@ -269,10 +263,17 @@ mod tests {
         let developed =
             develop_stack(frames.clone(), Some(&illuminants), None, Resolution::Full).unwrap();
         for (k, frame) in developed.iter().enumerate() {
+            // Each frame keeps one sample per pixel and shares the stack's ratios.
+            assert!(frame.cfa.is_some() && frame.rgb.r.data.is_empty());
+            let planes = frame.to_planes();
             for y in 1..h - 1 {
                 for x in 1..w - 1 {
                     let i = y * w + x;
-                    for (c, plane) in frame.rgb.channels().iter().enumerate() {
+                    assert_eq!(
+                        frame.rgb_at(x, y),
+                        [0, 1, 2].map(|c| planes.channels()[c].data[i])
+                    );
+                    for (c, plane) in planes.channels().iter().enumerate() {
                         let t = truth[k][i][c];
                         // Only the slow colour ramps are interpolated; the shading is exact.
                         assert!(
@@ -302,7 +303,7 @@ mod tests {
             let own = shuffled[0].channel(x, y);
             for c in 0..3 {
                 let ratio = |k: usize| {
-                    developed[k].rgb.channels()[c].data[i] / shuffled[k].values[i]
+                    developed[k].rgb_at(x, y)[c] / shuffled[k].values[i]
                         * (illuminants[k][own] / illuminants[k][c]) as f32
                 };
                 for k in 1..3 {

@@ -105,13 +105,18 @@ pub fn crop(frames: &Frames, roi: &Roi) -> Result<Frames> {
         lights: frames
             .lights
             .iter()
-            .map(|f| LightFrame {
-                rgb: RgbPlanes {
-                    r: crop_plane(&f.rgb.r, roi),
-                    g: crop_plane(&f.rgb.g, roi),
-                    b: crop_plane(&f.rgb.b, roi),
-                },
-                saturated: f.saturated.as_ref().map(|m| crop_mask(m, roi)),
+            .map(|f| {
+                let rgb = match &f.cfa {
+                    None => RgbPlanes {
+                        r: crop_plane(&f.rgb.r, roi),
+                        g: crop_plane(&f.rgb.g, roi),
+                        b: crop_plane(&f.rgb.b, roi),
+                    },
+                    // A frame stored as CFA samples is cropped to three planes of the
+                    // region's pixels (no CFA phase to carry over).
+                    Some(_) => f.window_planes(roi.x, roi.y, roi.width, roi.height),
+                };
+                LightFrame::from_rgb(rgb, f.saturated.as_ref().map(|m| crop_mask(m, roi)))
             })
             .collect(),
     })
@@ -182,13 +187,16 @@ pub fn bin2(frames: &Frames) -> Result<Frames> {
         lights: frames
             .lights
             .iter()
-            .map(|f| LightFrame {
-                rgb: RgbPlanes {
-                    r: bin2_plane(&f.rgb.r),
-                    g: bin2_plane(&f.rgb.g),
-                    b: bin2_plane(&f.rgb.b),
-                },
-                saturated: f.saturated.as_ref().map(bin2_mask),
+            .map(|f| {
+                let rgb = f.to_planes();
+                LightFrame::from_rgb(
+                    RgbPlanes {
+                        r: bin2_plane(&rgb.r),
+                        g: bin2_plane(&rgb.g),
+                        b: bin2_plane(&rgb.b),
+                    },
+                    f.saturated.as_ref().map(bin2_mask),
+                )
             })
             .collect(),
     })
@@ -264,7 +272,7 @@ pub fn auto_mask(frames: &Frames, lights: &LightSource) -> Result<(Mask, AutoMas
             za.total_cmp(&ill.sample(b, &centre).direction.z)
         })
         .ok_or_else(|| Error::Invalid("no lights".into()))?;
-    let frame = &frames.lights[top].rgb;
+    let frame = &frames.lights[top];
     let scale = ill.rgb_scale(top);
     let mut log_albedo = vec![f64::NAN; w * h];
     for y in 0..h {
@@ -275,9 +283,10 @@ pub fn auto_mask(frames: &Frames, lights: &LightSource) -> Result<(Mask, AutoMas
                 .map(|c| LUMINANCE_WEIGHTS[c] * scale[c] * s.falloff * s.direction.z)
                 .sum();
             let i = y * w + x;
-            let lum = LUMINANCE_WEIGHTS[0] * frame.r.data[i] as f64
-                + LUMINANCE_WEIGHTS[1] * frame.g.data[i] as f64
-                + LUMINANCE_WEIGHTS[2] * frame.b.data[i] as f64;
+            let [r, g, b] = frame.rgb_at(x, y);
+            let lum = LUMINANCE_WEIGHTS[0] * r as f64
+                + LUMINANCE_WEIGHTS[1] * g as f64
+                + LUMINANCE_WEIGHTS[2] * b as f64;
             if white > 0.0 {
                 log_albedo[i] = (lum / white).max(1e-4).ln();
             }

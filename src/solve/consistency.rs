@@ -188,7 +188,7 @@ fn pixel_residuals(
         if frame.saturated.as_ref().is_some_and(|m| m.data[i]) {
             continue;
         }
-        let raw = frame.rgb.channels().map(|p| p.data[i] as f64);
+        let raw = frame.rgb_at(x, y).map(|v| v as f64);
         let inv = ill.rgb_scale(k).map(|s| 1.0 / s);
         let lum: f64 = (0..3).map(|c| LUMINANCE_WEIGHTS[c] * raw[c] * inv[c]).sum();
         let sample = ill.sample(k, &point);
@@ -385,6 +385,7 @@ mod tests {
                 LightFrame {
                     rgb,
                     saturated: None,
+                    cfa: None,
                 }
             })
             .collect();

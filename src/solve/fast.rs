@@ -27,7 +27,7 @@ use rayon::prelude::*;
 
 use super::kernel::{Kernel, RowOut, Scratch};
 use super::lanes::{
-    adjugate, apply, dot, frob_sq, load, madd, mix, prefetch, store, subtract_if, vectors,
+    adjugate, apply, dot, frob_sq, load_rgb, madd, mix, prefetch, store, subtract_if, vectors,
     vectors6, Real, LANES, PREFETCH_AHEAD, V,
 };
 use super::lights::Illumination;
@@ -403,11 +403,7 @@ fn solve_chunk<T: Real, const FMA: bool>(
     let mut dropped = [zero; LANES];
     let mut noise = ctx.weighing.map(|w| NoiseSums::<T>::new(w, (x, y)));
     for (k, frame) in ctx.frames.lights.iter().enumerate() {
-        let (r, g, bl) = (
-            load::<T>(&frame.rgb.r, i0),
-            load::<T>(&frame.rgb.g, i0),
-            load::<T>(&frame.rgb.b, i0),
-        );
+        let [r, g, bl] = load_rgb::<T>(frame, i0, (x, y));
         const NONE_SATURATED: [bool; LANES] = [false; LANES];
         let sat: &[bool; LANES] = match &frame.saturated {
             Some(m) => m.data[i0..i0 + LANES].try_into().expect("a whole chunk"),

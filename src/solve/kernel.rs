@@ -239,13 +239,9 @@ impl<'a> Kernel<'a> {
     fn gather(&self, i: usize, point: &Vector3<f64>, out: &mut Vec<Measurement>) -> Dropped {
         out.clear();
         let mut dropped = Dropped::default();
+        let (x, y) = (i % self.frames.width, i / self.frames.width);
         for (k, frame) in self.frames.lights.iter().enumerate() {
-            let raw = [
-                frame.rgb.r.data[i],
-                frame.rgb.g.data[i],
-                frame.rgb.b.data[i],
-            ]
-            .map(|v| v as f64);
+            let raw = frame.rgb_at(x, y).map(|v| v as f64);
             if raw.iter().any(|v| !v.is_finite()) {
                 dropped.non_finite += 1;
                 continue;

@@ -2,7 +2,7 @@
 //! computes in, a vector of lanes whose operations LLVM turns into vector instructions, the
 //! small symmetric-matrix helpers, and the prefetch of the input planes. No solve logic.
 
-use crate::plane::{Frames, Plane};
+use crate::plane::{Frames, LightFrame, Plane};
 
 /// Pixels processed together (one vector register of f32 on AVX-512, two on AVX2).
 pub const LANES: usize = 16;
@@ -135,8 +135,16 @@ pub fn prefetch(frames: &Frames, i: usize) {
         if i >= n {
             return;
         }
+        let shared = frames.lights.first().and_then(|f| f.cfa.as_ref());
+        if let Some(cfa) = shared {
+            // The frames of a stack share one set of ratio planes.
+            for p in cfa.ratios.channels() {
+                // SAFETY: `i` is inside the plane; prefetching never faults.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(p.data.as_ptr().add(i) as *const i8) };
+            }
+        }
         for f in &frames.lights {
-            for p in f.rgb.channels() {
+            for p in f.rgb.channels().into_iter().filter(|p| p.len() > i) {
                 // SAFETY: `i` is inside the plane; prefetching never faults.
                 unsafe { _mm_prefetch::<_MM_HINT_T0>(p.data.as_ptr().add(i) as *const i8) };
             }
@@ -167,6 +175,30 @@ pub fn load<T: Real>(p: &Plane, i0: usize) -> [T; LANES] {
     let mut out = [T::zero(); LANES];
     for (o, &v) in out.iter_mut().zip(src) {
         *o = T::of32(v);
+    }
+    out
+}
+
+/// The R, G, B values of the `LANES` pixels of `frame` from index `i0` (columns `x`.. of row
+/// `y`), in `T`, however the frame stores them (see `LightFrame::cfa`).
+#[inline(always)]
+pub fn load_rgb<T: Real>(frame: &LightFrame, i0: usize, (x, y): (usize, usize)) -> [[T; LANES]; 3] {
+    let Some(cfa) = &frame.cfa else {
+        return [
+            load(&frame.rgb.r, i0),
+            load(&frame.rgb.g, i0),
+            load(&frame.rgb.b, i0),
+        ];
+    };
+    let own: &[f32; LANES] = frame.rgb.g.data[i0..i0 + LANES]
+        .try_into()
+        .expect("a whole chunk");
+    let mut out = [[T::zero(); LANES]; 3];
+    for (l, &v) in own.iter().enumerate() {
+        let rgb = cfa.rgb(v, i0 + l, cfa.own(x + l, y));
+        for c in 0..3 {
+            out[c][l] = T::of32(rgb[c]);
+        }
     }
     out
 }

@@ -253,6 +253,7 @@ fn flat_frames(rig: &Rig, value: f32) -> Frames {
             LightFrame {
                 rgb,
                 saturated: Some(crate::plane::Mask::new(4, 1, false)),
+                cfa: None,
             }
         })
         .collect();

@@ -470,3 +470,83 @@ fn the_default_screen_sends_few_clean_pixels_to_the_exact_kernel() {
         fast.escalated
     );
 }
+
+/// `frames` stored as a full-resolution RAW stack is: one sample per pixel (the channel the
+/// RGGB pattern gives it) and colour ratios shared by every frame, from frame 0, with each
+/// frame's own illuminant colour. Returns the stack and the same values as three planes.
+fn as_cfa_stack(frames: &Frames) -> (Frames, Frames) {
+    use crate::plane::{CfaColour, LightFrame, RgbPlanes};
+    let (w, h) = (frames.width, frames.height);
+    let pattern = [[0u8, 1], [1, 2]];
+    let first = &frames.lights[0].rgb;
+    let mut ratios = RgbPlanes::new(w, h);
+    ratios.par_rows_mut(|y, rows| {
+        for x in 0..w {
+            let i = y * w + x;
+            let own = pattern[y % 2][x % 2] as usize;
+            for c in 0..3 {
+                let v = first.channels()[c].data[i] / first.channels()[own].data[i];
+                rows[c][x] = if c == own { 1.0 } else { v };
+            }
+        }
+    });
+    let ratios = std::sync::Arc::new(ratios);
+    let lights: Vec<LightFrame> = frames
+        .lights
+        .iter()
+        .enumerate()
+        .map(|(k, f)| {
+            let mut sample = f.rgb.g.clone();
+            for (i, v) in sample.data.iter_mut().enumerate() {
+                let own = pattern[(i / w) % 2][(i % w) % 2] as usize;
+                *v = f.rgb.channels()[own].data[i];
+            }
+            LightFrame {
+                rgb: RgbPlanes {
+                    r: Plane::new(0, 0, 0.0),
+                    g: sample,
+                    b: Plane::new(0, 0, 0.0),
+                },
+                saturated: f.saturated.clone(),
+                cfa: Some(CfaColour {
+                    pattern,
+                    ratios: std::sync::Arc::clone(&ratios),
+                    colour: [0.9 + 0.01 * k as f32, 1.0, 1.1 - 0.02 * k as f32],
+                }),
+            }
+        })
+        .collect();
+    let stack = Frames {
+        lights,
+        ..frames.clone()
+    };
+    stack.validate().unwrap();
+    let planes = Frames {
+        lights: stack
+            .lights
+            .iter()
+            .map(|f| LightFrame::from_rgb(f.to_planes().into_owned(), f.saturated.clone()))
+            .collect(),
+        ..frames.clone()
+    };
+    (stack, planes)
+}
+
+/// A full-resolution RAW stack solves, on every kernel, exactly as the same values stored as
+/// three planes per frame: the solver computes a frame's missing channels where it reads
+/// them, with the arithmetic the planes were built with.
+#[test]
+fn a_cfa_stack_solves_as_its_planes_do() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::ShadowsSheen, MP, &Silent).unwrap();
+    let (stack, planes) = as_cfa_stack(&damaged(frames));
+    for (options, what) in [
+        (SolveOptions::default(), "default"),
+        (SolveOptions::exact(Estimator::Adaptive), "exact adaptive"),
+        (streaming(Precision::F64, None), "streaming f64"),
+    ] {
+        let a = run(&rig, &stack, &options, None);
+        let b = run(&rig, &planes, &options, None);
+        assert_same(&a, &b, what);
+    }
+}

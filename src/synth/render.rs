@@ -200,6 +200,7 @@ impl<'a> Scene<'a> {
                 LightFrame {
                     rgb,
                     saturated: None,
+                    cfa: None,
                 }
             })
             .collect();

@@ -33,9 +33,10 @@ pub fn write_frame_strip(frames: &Frames, dir: &Path) -> Result<()> {
         return Ok(());
     }
     let sample = |k: usize, x: usize, y: usize| -> [f32; 3] {
-        let i = (y * step).min(frames.height - 1) * frames.width + (x * step).min(frames.width - 1);
-        let rgb = &frames.lights[k].rgb;
-        [rgb.r.data[i], rgb.g.data[i], rgb.b.data[i]]
+        frames.lights[k].rgb_at(
+            (x * step).min(frames.width - 1),
+            (y * step).min(frames.height - 1),
+        )
     };
     let mut values: Vec<f32> = (0..n)
         .flat_map(|k| (0..th).flat_map(move |y| (0..tw).map(move |x| (k, x, y))))
