@@ -50,7 +50,9 @@ pub fn encode_png16(
     let buffer: ImageBuffer<Rgb<u16>, Vec<u16>> =
         ImageBuffer::from_raw(width as u32, height as u32, rgb)
             .ok_or_else(|| PsError::image(path, "image size does not match its data"))?;
-    let mut bytes = Vec::new();
+    // Room for the whole file at once: a Vec that grows by doubling copies the file several
+    // times into fresh memory (and the capacity it never touches costs nothing).
+    let mut bytes = Vec::with_capacity(file_bound(width * height * 6 + height));
     let (level, filter) = compression.settings();
     let encoder = PngEncoder::new_with_quality(&mut bytes, level, filter);
     DynamicImage::ImageRgb16(buffer)
@@ -115,6 +117,7 @@ pub fn encode_exr_planes(
     {
         return Err(PsError::image(path, "channels of different sizes"));
     }
+    let channel_count = channels.len();
     let list = channels
         .into_iter()
         .map(|(name, plane)| AnyChannel::new(name, FlatSamples::F32(plane.data)))
@@ -129,12 +132,20 @@ pub fn encode_exr_planes(
         encoding,
         AnyChannels::sort(list),
     );
-    let mut cursor = Cursor::new(Vec::new());
+    let samples = width * height * 4 * channel_count;
+    let mut cursor = Cursor::new(Vec::with_capacity(file_bound(samples)));
     Image::from_layer(layer)
         .write()
         .to_buffered(&mut cursor)
         .map_err(|e| PsError::image(path, e))?;
     Ok(cursor.into_inner())
+}
+
+/// A capacity that holds an encoded file of `raw` bytes of samples: lossless encoders can
+/// expand incompressible data a little (deflate's stored blocks, RLE's literal runs), and
+/// headers and offset tables come on top.
+fn file_bound(raw: usize) -> usize {
+    raw + raw / 64 + (1 << 20)
 }
 
 /// Reads the named channels of an EXR's first layer; fails naming a missing channel.
