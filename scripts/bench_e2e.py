@@ -13,7 +13,8 @@ Each configuration's figure is the median whole-process wall time over the round
 table (report.json "stages", which adds up to the solve's total) is the median run's.
 
 Usage: bench_e2e.py [--psscan BIN] [--python PY] [--width W --height H] [--rounds N]
-                    [--work DIR] [--keep] [--json]
+                    [--work DIR] [--keep] [--json] [--dng SET] [--dn16 SET]
+(--dng and --dn16 time sets rendered before, of the same scene, instead of rendering them.)
 Needs only the Python standard library; the peer needs rawpy and numpy in --python. Not part
 of `make test` (it takes minutes and needs a few GiB of disk): `make bench-e2e` runs it.
 """
@@ -111,6 +112,8 @@ def main():
     parser.add_argument("--work", help="folder for the sets and outputs (default: a temporary one)")
     parser.add_argument("--keep", action="store_true", help="keep the sets and outputs")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    parser.add_argument("--dng", help="an existing DNG set to time instead of rendering one")
+    parser.add_argument("--dn16", help="an existing dn16 set to time instead of rendering one")
     args = parser.parse_args()
     if not os.access(args.psscan, os.X_OK):
         sys.exit(f"bench_e2e: {args.psscan} not found: build it first (cargo build --release)")
@@ -118,10 +121,13 @@ def main():
     os.makedirs(work, exist_ok=True)
     log = sys.stderr
     try:
-        dng, dn16 = os.path.join(work, "dng"), os.path.join(work, "dn16")
-        print(f"rendering {args.width}x{args.height} sets in {work} ...", file=log)
-        synth(args.psscan, dng, "dng", args.width, args.height)
-        synth(args.psscan, dn16, "dn16", args.width, args.height)
+        dng = args.dng or os.path.join(work, "dng")
+        dn16 = args.dn16 or os.path.join(work, "dn16")
+        for path, encoding, given in [(dng, "dng", args.dng), (dn16, "dn16", args.dn16)]:
+            if not given:
+                print(f"rendering the {args.width}x{args.height} {encoding} set in {work} ...",
+                      file=log)
+                synth(args.psscan, path, encoding, args.width, args.height)
         configs = {
             "dng full": lambda o: solve(args.psscan, dng, o, []),
             "dng half": lambda o: solve(args.psscan, dng, o, ["--resolution", "half"]),
