@@ -117,10 +117,77 @@ pub fn encode_exr_planes(
     {
         return Err(PsError::image(path, "channels of different sizes"));
     }
-    let channel_count = channels.len();
+    let samples = channels
+        .into_iter()
+        .map(|(name, plane)| (name, ExrSamples::F32(plane.data)))
+        .collect();
+    encode_exr_samples(path, (width, height), samples, compression)
+}
+
+/// A channel's samples as an EXR stores them.
+pub enum ExrSamples {
+    /// Single precision.
+    F32(Vec<f32>),
+    /// Half precision: exact for whole numbers up to 2048 (class and count channels), half
+    /// the bytes of `F32`.
+    F16(Vec<exr::prelude::f16>),
+}
+
+impl ExrSamples {
+    /// Whole numbers (each at most 2048) as half-precision samples, which hold them exactly.
+    pub fn small_integers(values: impl Iterator<Item = u16>) -> Self {
+        ExrSamples::F16(
+            values
+                .map(|v| {
+                    debug_assert!(v <= 2048, "{v} is not exact in half precision");
+                    exr::prelude::f16::from_f32(v as f32)
+                })
+                .collect(),
+        )
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            ExrSamples::F32(v) => v.len(),
+            ExrSamples::F16(v) => v.len(),
+        }
+    }
+
+    fn bytes_per_sample(&self) -> usize {
+        match self {
+            ExrSamples::F32(_) => 4,
+            ExrSamples::F16(_) => 2,
+        }
+    }
+}
+
+/// Named channels of `size` (width, height) encoded as single-layer EXR file bytes; `path`
+/// only names the file in errors.
+pub fn encode_exr_samples(
+    path: &Path,
+    (width, height): (usize, usize),
+    channels: Vec<(&str, ExrSamples)>,
+    compression: ExrCompression,
+) -> Result<Vec<u8>> {
+    if channels.is_empty() {
+        return Err(PsError::image(path, "no channels to write"));
+    }
+    if channels.iter().any(|(_, s)| s.len() != width * height) {
+        return Err(PsError::image(path, "channels of different sizes"));
+    }
+    let bytes: usize = channels
+        .iter()
+        .map(|(_, s)| s.len() * s.bytes_per_sample())
+        .sum();
     let list = channels
         .into_iter()
-        .map(|(name, plane)| AnyChannel::new(name, FlatSamples::F32(plane.data)))
+        .map(|(name, samples)| {
+            let samples = match samples {
+                ExrSamples::F32(v) => FlatSamples::F32(v),
+                ExrSamples::F16(v) => FlatSamples::F16(v),
+            };
+            AnyChannel::new(name, samples)
+        })
         .collect();
     let encoding = match compression {
         ExrCompression::Rle => Encoding::FAST_LOSSLESS,
@@ -132,8 +199,7 @@ pub fn encode_exr_planes(
         encoding,
         AnyChannels::sort(list),
     );
-    let samples = width * height * 4 * channel_count;
-    let mut cursor = Cursor::new(Vec::with_capacity(file_bound(samples)));
+    let mut cursor = Cursor::new(Vec::with_capacity(file_bound(bytes)));
     Image::from_layer(layer)
         .write()
         .to_buffered(&mut cursor)
