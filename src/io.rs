@@ -284,6 +284,40 @@ mod tests {
     }
 
     #[test]
+    fn half_precision_channels_hold_small_integers_exactly() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.exr");
+        let counts: Vec<u16> = vec![0, 1, 5, 96, 2047, 2048];
+        let residual = vec![0.1f32, 2.5e-7, 3.0, -1.0, 1e30, 0.0];
+        let bytes = encode_exr_samples(
+            &path,
+            (3, 2),
+            vec![
+                ("residual", ExrSamples::F32(residual.clone())),
+                (
+                    "lights_used",
+                    ExrSamples::small_integers(counts.iter().copied()),
+                ),
+            ],
+            ExrCompression::None,
+        )
+        .unwrap();
+        std::fs::write(&path, bytes).unwrap();
+        let back = read_exr(&path, &["lights_used", "residual"]).unwrap();
+        let want: Vec<f32> = counts.iter().map(|&c| c as f32).collect();
+        assert_eq!(back[0].data, want);
+        assert_eq!(back[1].data, residual);
+        // A channel of another size is refused.
+        let err = encode_exr_samples(
+            &path,
+            (3, 2),
+            vec![("fit", ExrSamples::small_integers([1u16, 2].into_iter()))],
+            ExrCompression::None,
+        );
+        assert!(err.is_err());
+    }
+
+    #[test]
     fn png16_is_written_and_reads_back() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("n.png");
