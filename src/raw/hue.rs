@@ -8,7 +8,9 @@
 //! toward it: the own-channel site at `2d` (the same CFA site as the pixel) against the
 //! pixel's own. Along a direction where it continues, the neighbour's ratio to the own channel
 //! there (the mean of the two own-channel sites flanking it) is the pixel's ratio: the hue is
-//! constant within a material even where its brightness (fibre ridges) is not.
+//! constant within a material even where its brightness (fibre ridges) is not. Where the far
+//! flank is another material (a patch one or two pixels wide, such as a hole in the weave),
+//! the own channel there is taken as the pixel's own.
 
 use rayon::prelude::*;
 
@@ -23,6 +25,9 @@ use crate::plane::RgbPlanes;
 /// their noise and the fibre texture (a few percent); across a thread or gap edge the colour
 /// changes by tens of percent in most channels.
 const CONTINUITY_SCALE: f32 = 0.1;
+
+/// Log change of the own channel beyond which the far flank is taken for another material.
+const FLANK_CONTINUES: f32 = 3.0 * CONTINUITY_SCALE;
 
 /// Squared normal turn (radians^2) that counts like a squared log change of the own channel.
 const NORMAL_WEIGHT: f32 = (CONTINUITY_SCALE / 0.2) * (CONTINUITY_SCALE / 0.2);
@@ -115,7 +120,14 @@ fn ratio_along<'a>(
         } else {
             f32::INFINITY
         };
-        let flank = 0.5 * (own_value + beyond);
+        // The own channel at the neighbour: the mean of its two flanks where the material
+        // continues to the far one; the pixel's own value where it does not (a one- or
+        // two-pixel patch, whose far flank is another material).
+        let flank = if (beyond_log - own_log).abs() < FLANK_CONTINUES {
+            0.5 * (own_value + beyond)
+        } else {
+            own_value
+        };
         *slot = (change, neighbour.albedo / flank);
         best = best.min(change);
     }
@@ -228,6 +240,43 @@ mod tests {
             })
             .fold(0.0f32, f32::max);
         assert!(worst_plain > 1.0, "bilinear at the edge: {worst_plain}");
+    }
+
+    /// A two-pixel hole in a green thread (a G site above a B site, the ground showing
+    /// through, grey and level while the thread is tilted 20 degrees): the G pixel's blue is
+    /// sampled only by the B pixel beside it, whose far flank is thread. Its ratio is that
+    /// B sample over the pixel's own G, not over the mean of its G and the thread's.
+    #[test]
+    fn a_two_pixel_patch_takes_its_missing_channel_from_inside_the_patch() {
+        let (w, h) = (24, 12);
+        let pattern = Mosaic::parse_pattern("RGGB").unwrap();
+        let tilt = 20f32.to_radians();
+        let thread = ([0.04f32, 0.16, 0.07], [tilt.sin(), 0.0, tilt.cos()]);
+        let ground = ([0.05f32, 0.05, 0.05], [0.0, 0.0, 1.0]);
+        let hole = [(9, 4), (9, 5)];
+        let sites: Vec<SiteFit> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                let (colour, normal) = if hole.contains(&(x, y)) {
+                    ground
+                } else {
+                    thread
+                };
+                SiteFit {
+                    albedo: colour[pattern[y % 2][x % 2] as usize],
+                    normal,
+                }
+            })
+            .collect();
+        let ratios = colour_ratios(w, h, pattern, &sites);
+        let blue_over_green = ratios.channels()[2].data[4 * w + 9];
+        // The thread's direction weighs exp(-2 (1 - cos 20 deg) NORMAL_WEIGHT / 0.1^2) =
+        // exp(-3.0) = 0.049 of the hole's, with ratio 0.07 / 0.05: 1.9 % off; the chroma
+        // average keeps to the hole's own two pixels.
+        assert!(
+            (blue_over_green - 1.0).abs() < 0.03,
+            "blue / green in the hole: {blue_over_green} (true 1)"
+        );
     }
 
     #[test]
