@@ -2,14 +2,14 @@
 //! every pixel keeps its own CFA sample, and its missing channels are that sample times colour
 //! ratios that are the same in every frame.
 
+use std::sync::Arc;
+
 use rayon::prelude::*;
 
 use super::hue::colour_ratios;
 use super::mosaic::{bilinear, LinearMosaic, Mosaic, Resolution};
 use super::shading::{site_albedos, ShadingField};
 use crate::error::{Error, Result};
-use std::sync::Arc;
-
 use crate::plane::{CfaColour, LightFrame, Mask, Plane, RgbPlanes};
 
 /// Develops a stack of frames of one static scene, each lit by an illuminant of colour
