@@ -265,6 +265,20 @@ impl LightFrame {
         }
     }
 
+    /// A frame stored as one CFA sample per pixel (`sample`, whatever each pixel's channel),
+    /// its missing channels following from `cfa`; its `rgb.r` and `rgb.b` are left empty.
+    pub fn from_cfa(sample: Plane, saturated: Option<Mask>, cfa: CfaColour) -> Self {
+        LightFrame {
+            rgb: RgbPlanes {
+                r: Plane::new(0, 0, 0.0),
+                g: sample,
+                b: Plane::new(0, 0, 0.0),
+            },
+            saturated,
+            cfa: Some(cfa),
+        }
+    }
+
     /// Width in pixels.
     pub fn width(&self) -> usize {
         self.rgb.g.width
@@ -434,19 +448,15 @@ mod tests {
                 }
             }
         });
-        LightFrame {
-            rgb: RgbPlanes {
-                r: Plane::new(0, 0, 0.0),
-                g: sample,
-                b: Plane::new(0, 0, 0.0),
-            },
-            saturated: None,
-            cfa: Some(CfaColour {
+        LightFrame::from_cfa(
+            sample,
+            None,
+            CfaColour {
                 pattern: [[0, 1], [1, 2]],
                 ratios: std::sync::Arc::new(ratios),
                 colour: [0.8, 1.0, 1.25],
-            }),
-        }
+            },
+        )
     }
 
     #[test]

@@ -130,22 +130,20 @@ fn develop_full(
     frames
         .into_iter()
         .zip(colours)
-        .map(|(frame, colour)| LightFrame {
-            rgb: RgbPlanes {
-                r: Plane::new(0, 0, 0.0),
-                g: Plane::from_vec(w, h, frame.values).expect("a mosaic's samples fill it"),
-                b: Plane::new(0, 0, 0.0),
-            },
-            saturated: Some(Mask {
-                width: w,
-                height: h,
-                data: frame.saturated,
-            }),
-            cfa: Some(CfaColour {
-                pattern,
-                ratios: Arc::clone(&ratios),
-                colour: *colour,
-            }),
+        .map(|(frame, colour)| {
+            LightFrame::from_cfa(
+                Plane::from_vec(w, h, frame.values).expect("a mosaic's samples fill it"),
+                Some(Mask {
+                    width: w,
+                    height: h,
+                    data: frame.saturated,
+                }),
+                CfaColour {
+                    pattern,
+                    ratios: Arc::clone(&ratios),
+                    colour: *colour,
+                },
+            )
         })
         .collect()
 }

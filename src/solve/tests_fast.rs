@@ -501,34 +501,32 @@ fn as_cfa_stack(frames: &Frames) -> (Frames, Frames) {
                 let own = pattern[(i / w) % 2][(i % w) % 2] as usize;
                 *v = f.rgb.channels()[own].data[i];
             }
-            LightFrame {
-                rgb: RgbPlanes {
-                    r: Plane::new(0, 0, 0.0),
-                    g: sample,
-                    b: Plane::new(0, 0, 0.0),
-                },
-                saturated: f.saturated.clone(),
-                cfa: Some(CfaColour {
+            LightFrame::from_cfa(
+                sample,
+                f.saturated.clone(),
+                CfaColour {
                     pattern,
                     ratios: std::sync::Arc::clone(&ratios),
                     colour: [0.9 + 0.01 * k as f32, 1.0, 1.1 - 0.02 * k as f32],
-                }),
-            }
+                },
+            )
         })
         .collect();
-    let stack = Frames {
+    let with = |lights| Frames {
+        width: w,
+        height: h,
+        window: frames.window,
         lights,
-        ..frames.clone()
     };
+    let stack = with(lights);
     stack.validate().unwrap();
-    let planes = Frames {
-        lights: stack
+    let planes = with(
+        stack
             .lights
             .iter()
             .map(|f| LightFrame::from_rgb(f.to_planes().into_owned(), f.saturated.clone()))
             .collect(),
-        ..frames.clone()
-    };
+    );
     (stack, planes)
 }
 
