@@ -117,7 +117,8 @@ impl StageClock {
         if sum <= 0.0 {
             self.record(fallback, wall, None);
         } else {
-            for (name, s) in shares {
+            // A stage that did not run here (a path this command did not take) gets no row.
+            for (name, s) in shares.into_iter().filter(|(_, s)| *s > 0.0) {
                 self.record(name, wall * s / sum, Some(s));
             }
         }

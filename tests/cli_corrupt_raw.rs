@@ -66,7 +66,12 @@ fn synth_dng(dir: &Path) {
 }
 
 fn refused(set: &Path, out_dir: &Path) -> String {
-    let out = psscan(&["solve", s(set), "--out", s(out_dir), "-q"]);
+    refused_with(set, out_dir, &[])
+}
+
+/// [`refused`], solving with `flags`.
+fn refused_with(set: &Path, out_dir: &Path, flags: &[&str]) -> String {
+    let out = psscan(&[&["solve", s(set), "--out", s(out_dir), "-q"], flags].concat());
     let err = stderr(&out);
     assert_eq!(out.status.code(), Some(1), "{err}");
     assert!(err.contains("L03.dng"), "{err}");
@@ -119,6 +124,14 @@ fn damaged_bytes_in_a_dng_frames_compressed_data_are_refused_naming_the_frame() 
             }
         });
         let err = refused(&data, &t.join(format!("data{k}-out")));
+        assert!(err.contains("garbage"), "{err}");
+        // At half resolution each frame is counted in the pass that bins it (no full-size
+        // linear frame is kept): the same check, the same verdict.
+        let err = refused_with(
+            &data,
+            &t.join(format!("data{k}-half")),
+            &["--resolution", "half"],
+        );
         assert!(err.contains("garbage"), "{err}");
     }
 }

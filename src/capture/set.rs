@@ -15,8 +15,9 @@ use crate::fsutil::{create_dir_all, record_owned, sha256_hex, write_atomic};
 use crate::plane::Frames;
 use crate::progress::Progress;
 use crate::raw::{
-    check_consistent, check_plausible, decode_frame_timed, develop_frames_timed, DecodeInfo,
-    DecodedFrame, DevelopOptions, Encoding, RawMeta, Resolution, DECODE_STAGES,
+    below_black_floor, check_consistent, check_plausible, decode_frame_timed, develop_frames_timed,
+    DecodeInfo, DecodedFrame, DevelopOptions, Encoding, FrameData, LinearPass, RawMeta, RawPrep,
+    Resolution, SampleCounts, DECODE_STAGES,
 };
 use crate::rig::Rig;
 use crate::timing::{Busy, StageClock};
@@ -394,13 +395,18 @@ impl CaptureSet {
         }
         let dark = self.manifest.dark_frame();
         let subtracted = dark.filter(|_| options.subtract_dark);
-        // Decode the dark frame with the lights (it is checked with them too).
         let jobs: Vec<&FrameEntry> = dark.into_iter().chain(entries.iter().copied()).collect();
         progress.begin("decode", jobs.len() as u64);
-        let stages = [READ_STAGE, HASH_STAGE, DECODE_STAGES[0], DECODE_STAGES[1]];
-        let decode_one = |entry: &&FrameEntry, busy: &Busy| -> Result<DecodedFrame> {
+        let stages = [
+            READ_STAGE,
+            HASH_STAGE,
+            DECODE_STAGES[0],
+            DECODE_STAGES[1],
+            DECODE_STAGES[2],
+        ];
+        let decode_one = |entry: &FrameEntry, prep: RawPrep, busy: &Busy| -> Result<DecodedFrame> {
             let (path, bytes) = self.read_frame_bytes_timed(entry, busy)?;
-            let frame = decode_frame_timed(bytes, &path, encoding, &image.levels, busy)?;
+            let frame = decode_frame_timed(bytes, &path, encoding, &image.levels, prep, busy)?;
             if frame.stored_size != (image.width, image.height) {
                 return Err(Error::image(
                     &path,
@@ -413,10 +419,34 @@ impl CaptureSet {
             progress.advance(1);
             Ok(frame)
         };
+        // RAW sets: the dark frame first, so each light frame's one linear pass (`raw::pass`)
+        // can count its samples against the dark frame's read noise and, at half
+        // resolution, subtract it and bin: no full-size linear mosaic of a light frame is
+        // made there. (The dark frame decodes on its own; rawler decodes a tiled frame's
+        // tiles in parallel.)
+        let bin = encoding == Encoding::Raw && options.resolution == Resolution::Half;
         let decoded = clock.time_shared(&stages, "load frames", |busy| {
-            jobs.par_iter()
-                .map(|entry| decode_one(entry, busy))
-                .collect::<Result<Vec<DecodedFrame>>>()
+            let dark_frame = dark
+                .map(|entry| decode_one(entry, RawPrep::default(), busy))
+                .transpose()?;
+            let pass = LinearPass {
+                dark: match (&dark_frame, bin && subtracted.is_some()) {
+                    (
+                        Some(DecodedFrame {
+                            data: FrameData::Mosaic(m),
+                            ..
+                        }),
+                        true,
+                    ) => Some(m),
+                    _ => None,
+                },
+                below_black_floor: dark_frame.as_ref().and_then(below_black_floor),
+            };
+            let lights = entries
+                .par_iter()
+                .map(|entry| decode_one(entry, RawPrep { pass, bin }, busy))
+                .collect::<Result<Vec<DecodedFrame>>>()?;
+            Ok::<_, Error>(dark_frame.into_iter().chain(lights).collect::<Vec<_>>())
         })?;
         progress.end();
         if encoding == Encoding::Raw {
@@ -427,17 +457,14 @@ impl CaptureSet {
                 .collect();
             check_consistent(&metas).map_err(|m| Error::capture_set(&self.dir, m))?;
             self.check_camera_settings(&metas)?;
-            let lights: Vec<(String, &DecodedFrame)> = jobs
+            let lights: Vec<(String, SampleCounts)> = jobs
                 .iter()
                 .zip(&decoded)
                 .skip(dark.is_some() as usize)
-                .map(|(e, d)| (e.file.clone(), d))
+                .map(|(e, d)| (e.file.clone(), d.counts))
                 .collect();
-            let dark_frame = dark.map(|_| &decoded[0]);
             clock
-                .time("plausibility check", || {
-                    check_plausible(&lights, dark_frame)
-                })
+                .time("plausibility check", || check_plausible(&lights))
                 .map_err(|m| Error::capture_set(&self.dir, m))?;
         }
         let mut decoded = decoded.into_iter();
@@ -493,7 +520,8 @@ impl CaptureSet {
             .flatten();
         let frames = develop_frames_timed(
             lights,
-            dark_frame.filter(|_| subtracted.is_some()),
+            // Binned frames had it subtracted in their linear pass.
+            dark_frame.filter(|_| subtracted.is_some() && !bin),
             Some(&illuminants),
             shading.as_ref(),
             options.resolution,

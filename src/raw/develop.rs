@@ -12,6 +12,7 @@ use rayon::prelude::*;
 use super::decode::{decode_raw, RawMeta};
 use super::linear::{decode_dn_image, Levels};
 use super::mosaic::{subtract_dark, LinearMosaic, Resolution};
+use super::pass::{self, LinearPass, SampleCounts};
 use super::shading::ShadingField;
 use super::stack::develop_stack;
 use crate::error::{Error, Result};
@@ -79,6 +80,8 @@ pub struct DecodedFrame {
     pub stored_size: (usize, usize),
     /// White-balanced camera RGB to linear sRGB (RAW frames with a colour matrix).
     pub camera_to_srgb: Option<[[f64; 3]; 3]>,
+    /// What the linear pass counted for the plausibility check (RAW frames; zero for dn16).
+    pub counts: SampleCounts,
 }
 
 /// A decoded frame's values.
@@ -88,6 +91,20 @@ pub enum FrameData {
     Rgb(LightFrame),
     /// CFA samples (RAW frames).
     Mosaic(LinearMosaic),
+    /// RAW frames binned 2x2 as they were linearised (`RawPrep::bin`), the dark frame
+    /// subtracted where the pass had one.
+    Binned(LightFrame),
+}
+
+/// What becomes of a RAW frame's samples once decoded: one pass (see `raw::pass`) that
+/// linearises them, counts them for the plausibility check, subtracts `pass.dark` and, with
+/// `bin`, bins them 2x2.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct RawPrep<'a> {
+    /// The dark frame to subtract and the floor to count below.
+    pub pass: LinearPass<'a>,
+    /// Bin 2x2 in the pass (half resolution).
+    pub bin: bool,
 }
 
 /// Decodes and linearises one frame. `dn16_levels` linearise dn16 frames; RAW frames carry
@@ -103,21 +120,27 @@ pub fn decode_frame(
         path,
         encoding,
         dn16_levels,
+        RawPrep::default(),
         &Busy::new(&DECODE_STAGES),
     )
 }
 
-/// The stages [`decode_frame_timed`] records: the codec (rawler, or the PNG decoder) and the
-/// linearisation to `f32` (black and white level).
-pub const DECODE_STAGES: [&str; 2] = ["decode", "linearize"];
+/// The stages [`decode_frame_timed`] records: the codec (rawler, or the PNG decoder), the
+/// linearisation to `f32` (black and white level), and the pass that also subtracts the dark
+/// frame and bins (`RawPrep::bin`).
+pub const DECODE_STAGES: [&str; 3] = ["decode", "linearize", BINNING_PASS_STAGE];
 
-/// [`decode_frame`], adding the codec's and the linearisation's time to `busy` (which holds
-/// [`DECODE_STAGES`]).
+/// The stage name of the one pass that linearises, subtracts the dark frame and bins 2x2.
+pub const BINNING_PASS_STAGE: &str = "linearize, dark, bin 2x2";
+
+/// [`decode_frame`], adding the codec's and the linear pass's time to `busy` (which holds
+/// [`DECODE_STAGES`]); RAW frames are prepared as `prep` says.
 pub fn decode_frame_timed(
     bytes: Vec<u8>,
     path: &Path,
     encoding: Encoding,
     dn16_levels: &Levels,
+    prep: RawPrep,
     busy: &Busy,
 ) -> Result<DecodedFrame> {
     match encoding {
@@ -132,15 +155,22 @@ pub fn decode_frame_timed(
                 cfa_pattern: None,
                 stored_size: (dn.width, dn.height),
                 camera_to_srgb: None,
+                counts: SampleCounts::default(),
             })
         }
         Encoding::Raw => {
             let raw = busy.time("decode", || decode_raw(bytes, path))?;
-            let mosaic = busy
-                .time("linearize", || raw.mosaic.linearize())
-                .map_err(|e| Error::image(path, e))?;
+            let (data, counts) = if prep.bin {
+                busy.time(BINNING_PASS_STAGE, || pass::bin2x2(&raw.mosaic, prep.pass))
+                    .map(|(frame, counts)| (FrameData::Binned(frame), counts))
+            } else {
+                busy.time("linearize", || pass::linearize(&raw.mosaic, prep.pass))
+                    .map(|(mosaic, counts)| (FrameData::Mosaic(mosaic), counts))
+            }
+            .map_err(|e| Error::image(path, e))?;
             Ok(DecodedFrame {
-                data: FrameData::Mosaic(mosaic),
+                data,
+                counts,
                 levels: Levels {
                     black: raw.mosaic.mean_black(),
                     white: raw.mosaic.white as f64,
@@ -186,16 +216,30 @@ pub fn develop_frames_timed(
 ) -> Result<Vec<LightFrame>> {
     let mut rgb = Vec::new();
     let mut mosaics = Vec::new();
+    let mut binned = Vec::new();
     for frame in lights {
         match frame.data {
             FrameData::Rgb(f) => rgb.push(f),
             FrameData::Mosaic(m) => mosaics.push(m),
+            FrameData::Binned(f) => binned.push(f),
         }
     }
-    if !rgb.is_empty() && !mosaics.is_empty() {
+    let kinds = [rgb.len(), mosaics.len(), binned.len()];
+    if kinds.iter().filter(|&&n| n > 0).count() > 1 {
         return Err(Error::Invalid(
-            "a set mixes RGB frames and RAW frames".into(),
+            "a set mixes RGB frames and RAW frames (or binned and unbinned RAW frames)".into(),
         ));
+    }
+    if !binned.is_empty() {
+        // The linear pass already subtracted the dark frame it was given and binned.
+        if resolution != Resolution::Half || dark.is_some() {
+            return Err(Error::Invalid(
+                "frames binned as they were decoded are developed at half resolution, their \
+                 dark frame already subtracted"
+                    .into(),
+            ));
+        }
+        return Ok(binned);
     }
     if !rgb.is_empty() {
         if resolution != Resolution::Full {
@@ -289,49 +333,21 @@ const BELOW_BLACK_MIN_SAMPLES: usize = 16;
 /// Catches RAW frames that decoded to garbage (a damaged compressed stream decodes into
 /// samples wandering over the whole range): against the all-off frame's read noise, a light
 /// frame may not hold samples far below the black level (the shutter only adds light), and it
-/// may not be mostly clipped at the white level. The read noise is the dark frame's own
-/// spread (its median absolute deviation, so a few hot pixels do not inflate it); without a
-/// dark frame only the clipping test runs. `frames` pairs file names with decoded frames.
-pub fn check_plausible(
-    frames: &[(String, &DecodedFrame)],
-    dark: Option<&DecodedFrame>,
-) -> std::result::Result<(), String> {
-    // The dark frame's level (two selections over its samples) beside the clipping counts;
-    // then the frames side by side: at 16 MP each is a pass over 16 M samples.
-    let (dark_level, clipped) = rayon::join(
-        || {
-            dark.and_then(|d| match &d.data {
-                FrameData::Mosaic(m) => Some(median_and_sigma(&m.values)),
-                FrameData::Rgb(_) => None,
-            })
-        },
-        || {
-            frames
-                .par_iter()
-                .map(|(_, frame)| match &frame.data {
-                    FrameData::Mosaic(m) => m.saturated.iter().filter(|&&s| s).count(),
-                    FrameData::Rgb(_) => 0,
-                })
-                .collect::<Vec<usize>>()
-        },
-    );
+/// may not be mostly clipped at the white level. The counts come from each frame's linear
+/// pass (`DecodedFrame::counts`), the floor from [`below_black_floor`]; without one only the
+/// clipping test runs. `frames` pairs file names with their counts.
+pub fn check_plausible(frames: &[(String, SampleCounts)]) -> std::result::Result<(), String> {
     let problems: Vec<String> = frames
-        .par_iter()
-        .zip(&clipped)
-        .filter_map(|((name, frame), &clipped)| {
-            let FrameData::Mosaic(m) = &frame.data else {
-                return None;
-            };
-            let n = m.values.len().max(1);
-            if clipped * 2 > n {
+        .iter()
+        .filter_map(|(name, counts)| {
+            let n = counts.samples.max(1);
+            if counts.clipped * 2 > n {
                 return Some(format!(
                     "{name}: {:.0} % of its samples are clipped at the white level",
-                    100.0 * clipped as f64 / n as f64
+                    100.0 * counts.clipped as f64 / n as f64
                 ));
             }
-            let (median, sigma) = dark_level.filter(|(_, s)| *s > 0.0)?;
-            let floor = median - BELOW_BLACK_SIGMAS * sigma;
-            let below = m.values.iter().filter(|&&v| v < floor).count();
+            let below = counts.below_floor?;
             let allowed = BELOW_BLACK_MIN_SAMPLES.max((BELOW_BLACK_SHARE * n as f64) as usize);
             (below > allowed).then(|| {
                 format!(
@@ -351,6 +367,18 @@ pub fn check_plausible(
             problems.join("; ")
         ))
     }
+}
+
+/// The linear level under which a light frame's sample is impossibly far below black:
+/// [`BELOW_BLACK_SIGMAS`] times the dark frame's read noise (its median absolute deviation,
+/// so a few hot pixels do not inflate it) below its median. `None` for a dark frame with no
+/// spread (or not a RAW one): the below-black test then does not run.
+pub fn below_black_floor(dark: &DecodedFrame) -> Option<f32> {
+    let FrameData::Mosaic(m) = &dark.data else {
+        return None;
+    };
+    let (median, sigma) = median_and_sigma(&m.values);
+    (sigma > 0.0).then_some(median - BELOW_BLACK_SIGMAS * sigma)
 }
 
 /// The median of `values` and the standard deviation of Gaussian noise about it, from the
@@ -466,6 +494,7 @@ mod tests {
             cfa_pattern: None,
             camera_to_srgb: None,
             stored_size: (2, 2),
+            counts: SampleCounts::default(),
         };
         let err = develop_frames(vec![frame], None, None, Resolution::Half)
             .unwrap_err()

@@ -17,6 +17,7 @@ mod guard;
 mod hue;
 mod linear;
 mod mosaic;
+mod pass;
 mod shading;
 mod stack;
 
@@ -25,14 +26,15 @@ pub use decode::{
     decode_raw, probe_raw, quiet_decoder_panics, read_raw, DecodedRaw, RawMeta, MAX_SAMPLES,
 };
 pub use develop::{
-    check_consistent, check_plausible, decode_frame, decode_frame_timed, develop_frames,
-    develop_frames_timed, DecodeInfo, DecodedFrame, DevelopOptions, Encoding, FrameData,
-    DARK_STAGE, DECODE_STAGES,
+    below_black_floor, check_consistent, check_plausible, decode_frame, decode_frame_timed,
+    develop_frames, develop_frames_timed, DecodeInfo, DecodedFrame, DevelopOptions, Encoding,
+    FrameData, RawPrep, BINNING_PASS_STAGE, DARK_STAGE, DECODE_STAGES,
 };
 pub use dng::{encode_dng, DngStorage};
 pub use linear::{decode_dn_image, encode_png16, read_dn_image, DnImage, Levels};
 pub use mosaic::{
     bilinear, subtract_dark, LinearMosaic, Mosaic, Resolution, BLUE, GREEN, RED, SATURATION_MARGIN,
 };
+pub use pass::{LinearPass, SampleCounts};
 pub use shading::ShadingField;
 pub use stack::develop_stack;

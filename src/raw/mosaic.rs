@@ -206,34 +206,7 @@ impl Mosaic {
     /// The samples as linear values (per-site black subtracted, 1.0 at the white level) with
     /// their saturation flags.
     pub fn linearize(&self) -> Result<LinearMosaic> {
-        self.validate()?;
-        let scales = self
-            .black
-            .map(|row| row.map(|b| (b, 1.0 / (self.white - b))));
-        let threshold = self.saturation_threshold();
-        let w = self.width;
-        let mut values = vec![0.0f32; self.samples.len()];
-        let mut saturated = vec![false; self.samples.len()];
-        values
-            .par_chunks_mut(w)
-            .zip(saturated.par_chunks_mut(w))
-            .zip(self.samples.par_chunks(w))
-            .enumerate()
-            .for_each(|(y, ((v, sat), row))| {
-                let site = &scales[y % 2];
-                for x in 0..w {
-                    let (offset, scale) = site[x % 2];
-                    v[x] = (row[x] as f32 - offset) * scale;
-                    sat[x] = row[x] as f32 >= threshold;
-                }
-            });
-        Ok(LinearMosaic {
-            width: self.width,
-            height: self.height,
-            pattern: self.pattern,
-            values,
-            saturated,
-        })
+        Ok(super::pass::linearize(self, super::pass::LinearPass::default())?.0)
     }
 }
 
@@ -262,19 +235,7 @@ impl LinearMosaic {
 
     /// Subtracts a dark frame sample by sample; a sample saturated in either is saturated.
     pub fn subtract(&mut self, dark: &LinearMosaic) -> Result<()> {
-        if (dark.width, dark.height, dark.pattern) != (self.width, self.height, self.pattern) {
-            let describe = |m: &LinearMosaic| {
-                let names = m
-                    .pattern
-                    .map(|row| row.map(|c| ["R", "G", "B"][c as usize].to_string()));
-                format!("{}x{} {}", m.width, m.height, names.concat().concat())
-            };
-            return Err(Error::Invalid(format!(
-                "the dark frame is a {} mosaic, the light frame {}",
-                describe(dark),
-                describe(self)
-            )));
-        }
+        dark.check_same_layout(self.width, self.height, self.pattern)?;
         self.values
             .par_iter_mut()
             .zip(&dark.values)
@@ -283,6 +244,27 @@ impl LinearMosaic {
             *s |= *d;
         }
         Ok(())
+    }
+
+    /// Checks that this dark frame has a light frame's size and CFA pattern.
+    pub(super) fn check_same_layout(
+        &self,
+        width: usize,
+        height: usize,
+        pattern: [[u8; 2]; 2],
+    ) -> Result<()> {
+        if (self.width, self.height, self.pattern) == (width, height, pattern) {
+            return Ok(());
+        }
+        let describe = |w: usize, h: usize, pattern: [[u8; 2]; 2]| {
+            let names = pattern.map(|row| row.map(|c| ["R", "G", "B"][c as usize].to_string()));
+            format!("{w}x{h} {}", names.concat().concat())
+        };
+        Err(Error::Invalid(format!(
+            "the dark frame is a {} mosaic, the light frame {}",
+            describe(self.width, self.height, self.pattern),
+            describe(width, height, pattern)
+        )))
     }
 
     /// 2x2 binning: R and B of each cell, the mean of its two G.

@@ -1,0 +1,306 @@
+//! One pass over a decoded RAW frame's samples that does everything a light frame needs
+//! before the stack is developed: linearisation (black and white level, saturation flags),
+//! the counts the set's plausibility check reads, and at half resolution the dark-frame
+//! subtraction and the 2x2 binning too.
+//!
+//! Why one pass: at 16 MP a frame's linear mosaic is 80 MB (`f32` samples and their flags).
+//! Linearising, counting, subtracting and binning in separate passes read it four times, and
+//! at half resolution the full-size linear mosaic is thrown away right after binning. Fresh
+//! memory is expensive on the machines psscan runs on (a page fault and the kernel's zeroing
+//! per page), so the half-resolution pass never makes the full-size mosaic at all.
+//!
+//! Each pass gives the same values, bit for bit, as [`Mosaic::linearize`],
+//! [`LinearMosaic::subtract`] and [`LinearMosaic::bin2x2`] in a row (the same operations in the
+//! same order); the tests below hold it to that.
+
+use rayon::prelude::*;
+
+use super::mosaic::{LinearMosaic, Mosaic, Resolution};
+use crate::error::Result;
+use crate::plane::{LightFrame, Mask, RgbPlanes};
+
+/// What a pass counted over a light frame's own samples (before any dark frame is
+/// subtracted), for `develop::check_plausible`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SampleCounts {
+    /// Samples in the frame.
+    pub samples: usize,
+    /// Samples at or near the white level.
+    pub clipped: usize,
+    /// Samples below the pass's `below_black_floor` (`None`: no floor was given).
+    pub below_floor: Option<usize>,
+}
+
+impl SampleCounts {
+    fn plus(self, other: SampleCounts) -> SampleCounts {
+        SampleCounts {
+            samples: self.samples + other.samples,
+            clipped: self.clipped + other.clipped,
+            below_floor: match (self.below_floor, other.below_floor) {
+                (Some(a), Some(b)) => Some(a + b),
+                (a, b) => a.or(b),
+            },
+        }
+    }
+}
+
+/// What a pass does besides linearising.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct LinearPass<'a> {
+    /// Subtracted sample by sample; a sample saturated in it is saturated in the result.
+    pub dark: Option<&'a LinearMosaic>,
+    /// Linear level under which a sample is counted as impossibly far below black (see
+    /// `develop::below_black_floor`).
+    pub below_black_floor: Option<f32>,
+}
+
+/// Per CFA site, the black level and the scale to linear units; and the saturation level.
+struct Sites {
+    scales: [[(f32, f32); 2]; 2],
+    threshold: f32,
+}
+
+impl Sites {
+    fn of(mosaic: &Mosaic) -> Sites {
+        Sites {
+            scales: mosaic
+                .black
+                .map(|row| row.map(|b| (b, 1.0 / (mosaic.white - b)))),
+            threshold: mosaic.saturation_threshold(),
+        }
+    }
+
+    /// Sample `raw` of row parity `y2` and column `x` in linear units, and whether it is
+    /// saturated; as `Mosaic::linearize` computes them.
+    #[inline(always)]
+    fn linear(&self, raw: u16, x: usize, y2: usize) -> (f32, bool) {
+        let (offset, scale) = self.scales[y2][x % 2];
+        ((raw as f32 - offset) * scale, raw as f32 >= self.threshold)
+    }
+}
+
+/// One row's plausibility counts.
+#[inline(always)]
+fn count(counts: &mut SampleCounts, value: f32, saturated: bool, floor: Option<f32>) {
+    counts.clipped += saturated as usize;
+    if let (Some(below), Some(floor)) = (counts.below_floor.as_mut(), floor) {
+        *below += (value < floor) as usize;
+    }
+}
+
+fn empty_counts(pass: &LinearPass, samples: usize) -> SampleCounts {
+    SampleCounts {
+        samples,
+        clipped: 0,
+        below_floor: pass.below_black_floor.map(|_| 0),
+    }
+}
+
+fn check_dark(mosaic: &Mosaic, dark: Option<&LinearMosaic>) -> Result<()> {
+    match dark {
+        Some(d) => d.check_same_layout(mosaic.width, mosaic.height, mosaic.pattern),
+        None => Ok(()),
+    }
+}
+
+/// Linearises `mosaic` and counts its samples for the plausibility check, subtracting
+/// `pass.dark` where given: `mosaic.linearize()` then `LinearMosaic::subtract`, in one pass.
+pub fn linearize(mosaic: &Mosaic, pass: LinearPass) -> Result<(LinearMosaic, SampleCounts)> {
+    mosaic.validate()?;
+    check_dark(mosaic, pass.dark)?;
+    let sites = Sites::of(mosaic);
+    let w = mosaic.width;
+    let mut values = vec![0.0f32; mosaic.samples.len()];
+    let mut saturated = vec![false; mosaic.samples.len()];
+    let counts = values
+        .par_chunks_mut(w)
+        .zip(saturated.par_chunks_mut(w))
+        .zip(mosaic.samples.par_chunks(w))
+        .enumerate()
+        .map(|(y, ((v, sat), row))| {
+            let mut counts = empty_counts(&pass, w);
+            let dark = pass.dark.map(|d| {
+                (
+                    &d.values[y * w..(y + 1) * w],
+                    &d.saturated[y * w..(y + 1) * w],
+                )
+            });
+            for x in 0..w {
+                let (value, saturated) = sites.linear(row[x], x, y % 2);
+                count(&mut counts, value, saturated, pass.below_black_floor);
+                (v[x], sat[x]) = match dark {
+                    Some((dv, ds)) => (value - dv[x], saturated | ds[x]),
+                    None => (value, saturated),
+                };
+            }
+            counts
+        })
+        .reduce(|| empty_counts(&pass, 0), SampleCounts::plus);
+    let linear = LinearMosaic {
+        width: mosaic.width,
+        height: mosaic.height,
+        pattern: mosaic.pattern,
+        values,
+        saturated,
+    };
+    Ok((linear, counts))
+}
+
+/// Linearises `mosaic`, counts its samples for the plausibility check, subtracts
+/// `pass.dark` where given and bins the result 2x2 (R and B of each cell, the mean of its two
+/// G): `linearize`, `LinearMosaic::subtract` and `LinearMosaic::bin2x2` in one pass, with no
+/// full-size linear mosaic made. Samples of an odd last row or column are counted, not binned.
+pub fn bin2x2(mosaic: &Mosaic, pass: LinearPass) -> Result<(LightFrame, SampleCounts)> {
+    mosaic.validate()?;
+    check_dark(mosaic, pass.dark)?;
+    let sites = Sites::of(mosaic);
+    let (width, height) = (mosaic.width, mosaic.height);
+    let (w, h) = Resolution::Half.size(width, height);
+    let mut rgb = RgbPlanes::new(w, h);
+    let mut saturated = Mask::new(w, h, false);
+    // A sample's linear value after the dark frame, its saturation, and the counts.
+    let sample = |x: usize, y: usize, counts: &mut SampleCounts| -> (f32, bool) {
+        let at = y * width + x;
+        let (value, sat) = sites.linear(mosaic.samples[at], x, y % 2);
+        count(counts, value, sat, pass.below_black_floor);
+        match pass.dark {
+            Some(d) => (value - d.values[at], sat | d.saturated[at]),
+            None => (value, sat),
+        }
+    };
+    let binned = rgb
+        .r
+        .data
+        .par_chunks_mut(w.max(1))
+        .zip(rgb.g.data.par_chunks_mut(w.max(1)))
+        .zip(rgb.b.data.par_chunks_mut(w.max(1)))
+        .zip(saturated.data.par_chunks_mut(w.max(1)))
+        .enumerate()
+        .map(|(v, (((r, g), b), sat))| {
+            let mut counts = empty_counts(&pass, 2 * width);
+            for u in 0..w {
+                let mut sum = [0.0f32; 3];
+                let mut any_saturated = false;
+                for j in 0..2 {
+                    for i in 0..2 {
+                        let (value, s) = sample(2 * u + i, 2 * v + j, &mut counts);
+                        any_saturated |= s;
+                        sum[mosaic.pattern[j][i] as usize] += value;
+                    }
+                }
+                r[u] = sum[0];
+                g[u] = 0.5 * sum[1];
+                b[u] = sum[2];
+                sat[u] = any_saturated;
+            }
+            // An odd last column is not binned, but it is counted.
+            for x in 2 * w..width {
+                for y in [2 * v, 2 * v + 1] {
+                    sample(x, y, &mut counts);
+                }
+            }
+            counts
+        })
+        .reduce(|| empty_counts(&pass, 0), SampleCounts::plus);
+    // An odd last row likewise.
+    let mut rest = empty_counts(&pass, (height - 2 * h) * width);
+    for y in 2 * h..height {
+        for x in 0..width {
+            sample(x, y, &mut rest);
+        }
+    }
+    let frame = LightFrame {
+        rgb,
+        saturated: Some(saturated),
+        cfa: None,
+    };
+    Ok((frame, binned.plus(rest)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A mosaic with samples spread over the whole range (some clipped, some below black),
+    /// per-site black levels and an odd size.
+    fn mosaic(width: usize, height: usize, pattern: &str, seed: u32) -> Mosaic {
+        let mut state = seed;
+        Mosaic {
+            width,
+            height,
+            pattern: Mosaic::parse_pattern(pattern).unwrap(),
+            black: [[100.0, 104.0], [98.0, 101.0]],
+            white: 4000.0,
+            samples: (0..width * height)
+                .map(|_| {
+                    state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                    (state >> 20) as u16 // 0..4095: below black, in range and clipped
+                })
+                .collect(),
+        }
+    }
+
+    /// The counts the separate passes would give.
+    fn counts_of(linear: &LinearMosaic, floor: Option<f32>) -> SampleCounts {
+        SampleCounts {
+            samples: linear.values.len(),
+            clipped: linear.saturated.iter().filter(|&&s| s).count(),
+            below_floor: floor.map(|f| linear.values.iter().filter(|&&v| v < f).count()),
+        }
+    }
+
+    #[test]
+    fn one_pass_equals_linearize_subtract_and_bin_bit_for_bit() {
+        for (w, h) in [(34, 30), (33, 31), (2, 3)] {
+            for pattern in ["RGGB", "GBRG"] {
+                let light = mosaic(w, h, pattern, 7);
+                let dark = mosaic(w, h, pattern, 11).linearize().unwrap();
+                for (dark, floor) in [(None, None), (Some(&dark), Some(-0.01f32))] {
+                    let pass = LinearPass {
+                        dark,
+                        below_black_floor: floor,
+                    };
+                    let separate = light.linearize().unwrap();
+                    let expected_counts = counts_of(&separate, floor);
+                    if w * h >= 1000 {
+                        assert!(expected_counts.clipped > 0, "the test mosaic clips");
+                        assert_ne!(expected_counts.below_floor, Some(0), "and goes below black");
+                    }
+                    let mut subtracted = separate.clone();
+                    if let Some(d) = dark {
+                        subtracted.subtract(d).unwrap();
+                    }
+                    let (linear, counts) = linearize(&light, pass).unwrap();
+                    assert_eq!(counts, expected_counts, "{w}x{h} {pattern}");
+                    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                    assert_eq!(bits(&linear.values), bits(&subtracted.values));
+                    assert_eq!(linear.saturated, subtracted.saturated);
+
+                    let (binned, counts) = bin2x2(&light, pass).unwrap();
+                    assert_eq!(counts, expected_counts, "{w}x{h} {pattern} binned");
+                    let expected = subtracted.bin2x2();
+                    for c in 0..3 {
+                        assert_eq!(
+                            bits(&binned.rgb.channels()[c].data),
+                            bits(&expected.rgb.channels()[c].data)
+                        );
+                    }
+                    assert_eq!(binned.saturated, expected.saturated);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_dark_frame_of_another_layout_is_refused() {
+        let light = mosaic(8, 6, "RGGB", 1);
+        let dark = mosaic(8, 6, "BGGR", 2).linearize().unwrap();
+        let pass = LinearPass {
+            dark: Some(&dark),
+            below_black_floor: None,
+        };
+        let err = bin2x2(&light, pass).unwrap_err().to_string();
+        assert!(err.contains("dark frame"), "{err}");
+        assert!(linearize(&light, pass).is_err());
+    }
+}
