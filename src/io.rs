@@ -6,7 +6,7 @@ use std::path::Path;
 
 use exr::prelude::*;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{DynamicImage, ImageBuffer, Rgb};
+use image::DynamicImage;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error as PsError, Result};
@@ -25,10 +25,11 @@ pub enum PngCompression {
 }
 
 impl PngCompression {
-    fn settings(self) -> (CompressionType, FilterType) {
+    /// The png crate's setting (both with its adaptive per-row filter).
+    fn deflate(self) -> png::Compression {
         match self {
-            PngCompression::Fast => (CompressionType::Fast, FilterType::Adaptive),
-            PngCompression::Best => (CompressionType::Best, FilterType::Adaptive),
+            PngCompression::Fast => png::Compression::Fast,
+            PngCompression::Best => png::Compression::High,
         }
     }
 }
@@ -44,20 +45,83 @@ pub fn encode_png16(
     path: &Path,
     width: usize,
     height: usize,
-    rgb: Vec<u16>,
+    mut rgb: Vec<u16>,
     compression: PngCompression,
 ) -> Result<Vec<u8>> {
-    let buffer: ImageBuffer<Rgb<u16>, Vec<u16>> =
-        ImageBuffer::from_raw(width as u32, height as u32, rgb)
-            .ok_or_else(|| PsError::image(path, "image size does not match its data"))?;
+    use rayon::prelude::*;
+    if rgb.len() != width * height * 3 {
+        return Err(PsError::image(path, "image size does not match its data"));
+    }
+    // PNG stores samples big-endian: swapped in place and handed over as bytes, where the
+    // image crate's encoder copies the image into a byte vector that grows by doubling.
+    rgb.par_iter_mut().for_each(|v| *v = v.to_be());
+    let samples: &[u8] = bytemuck::cast_slice(&rgb);
+    let mut deflate = compression.deflate();
+    // The fast deflate, streamed, makes incompressible data larger than storing it (up to a
+    // tenth: a normal map's low bytes are noise). A sample of rows says which it will be.
+    if compression == PngCompression::Fast && !compresses(samples, width, height) {
+        deflate = png::Compression::NoCompression;
+    }
+    png16_stream(samples, width, height, deflate).map_err(|e| PsError::image(path, e))
+}
+
+/// Rows of the sample [`compresses`] encodes: enough to see the image's statistics, a small
+/// share of a large image's encoding time.
+const PNG_SAMPLE_ROWS: usize = 64;
+
+/// Whether the fast deflate makes `samples` (big-endian 16-bit RGB rows) smaller than storing
+/// them, judged on [`PNG_SAMPLE_ROWS`] rows spread over the image.
+fn compresses(samples: &[u8], width: usize, height: usize) -> bool {
+    let row = width * 6;
+    let rows = height.min(PNG_SAMPLE_ROWS);
+    if rows == 0 {
+        return true;
+    }
+    let sample: Vec<u8> = (0..rows)
+        .flat_map(|k| {
+            let y = k * height / rows;
+            &samples[y * row..(y + 1) * row]
+        })
+        .copied()
+        .collect();
+    match png16_stream(&sample, width, rows, png::Compression::Fast) {
+        Ok(encoded) => encoded.len() < rows * (row + 1),
+        Err(_) => true,
+    }
+}
+
+/// Big-endian 16-bit RGB rows as PNG file bytes, the deflate output streamed into the file's
+/// bytes chunk by chunk (1 MiB IDAT chunks), not into a second whole-image buffer first.
+fn png16_stream(
+    samples: &[u8],
+    width: usize,
+    height: usize,
+    deflate: png::Compression,
+) -> std::result::Result<Vec<u8>, png::EncodingError> {
+    use std::io::Write;
     // Room for the whole file at once: a Vec that grows by doubling copies the file several
     // times into fresh memory (and the capacity it never touches costs nothing).
     let mut bytes = Vec::with_capacity(file_bound(width * height * 6 + height));
-    let (level, filter) = compression.settings();
-    let encoder = PngEncoder::new_with_quality(&mut bytes, level, filter);
-    DynamicImage::ImageRgb16(buffer)
-        .write_with_encoder(encoder)
-        .map_err(|e| PsError::image(path, e))?;
+    let mut encoder = png::Encoder::new(&mut bytes, width as u32, height as u32);
+    encoder.set_color(png::ColorType::Rgb);
+    encoder.set_depth(png::BitDepth::Sixteen);
+    encoder.set_compression(deflate);
+    // Filters only help deflate find repeats: stored data is written as it is.
+    encoder.set_filter(match deflate {
+        png::Compression::NoCompression => png::Filter::NoFilter,
+        _ => png::Filter::Adaptive,
+    });
+    let mut writer = encoder.write_header()?;
+    if let png::Compression::NoCompression = deflate {
+        // Stored blocks: the png crate's own stored writer (the streaming one runs zlib at
+        // level 0, several times slower), which builds the data in a buffer of its own.
+        writer.write_image_data(samples)?;
+    } else {
+        let mut stream = writer.stream_writer_with_size(1 << 20)?;
+        stream.write_all(samples)?;
+        stream.finish()?;
+    }
+    writer.finish()?;
     Ok(bytes)
 }
 
@@ -263,6 +327,51 @@ pub fn read_exr(path: &Path, names: &[&str]) -> Result<Vec<Plane>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// 16-bit RGB of `w x h`: a smooth ramp (deflate shrinks it) or noise in every bit (it
+    /// cannot).
+    fn rgb16(w: usize, h: usize, noise: bool) -> Vec<u16> {
+        let mut state = 99u32;
+        (0..w * h * 3)
+            .map(|i| {
+                state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                if noise {
+                    (state >> 16) as u16
+                } else {
+                    (i / 3 % w * 300 + i % 3) as u16
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn png16_round_trips_and_incompressible_data_is_stored_not_inflated() {
+        let (w, h) = (301, 200);
+        let stored = h * (w * 6 + 1);
+        for noise in [false, true] {
+            for compression in [PngCompression::Fast, PngCompression::Best] {
+                let rgb = rgb16(w, h, noise);
+                let bytes =
+                    encode_png16(Path::new("x.png"), w, h, rgb.clone(), compression).unwrap();
+                let back = image::load_from_memory(&bytes).unwrap().into_rgb16();
+                assert_eq!(back.dimensions(), (w as u32, h as u32));
+                assert_eq!(back.into_raw(), rgb, "noise {noise}, {compression:?}");
+                if noise {
+                    // Stored blocks cost 5 bytes per 64 KiB, headers a few hundred bytes;
+                    // the streamed fast deflate made such data a tenth larger.
+                    assert!(
+                        bytes.len() < stored + stored / 1000 + 1024,
+                        "{}",
+                        bytes.len()
+                    );
+                } else {
+                    assert!(bytes.len() < stored / 2, "{}", bytes.len());
+                }
+            }
+        }
+        let err = encode_png16(Path::new("x.png"), w, h, vec![0; 5], PngCompression::Fast);
+        assert!(err.unwrap_err().to_string().contains("x.png"));
+    }
 
     #[test]
     fn exr_round_trip_is_exact_and_missing_channels_are_named() {
