@@ -25,7 +25,7 @@ use super::set::read_inside;
 use crate::error::{Error, Result};
 use crate::plane::{Frames, LightFrame, Mask, Plane, SensorWindow};
 use crate::progress::Progress;
-use crate::raw::{decode_dn_image, Levels};
+use crate::raw::{decode_dn_frame, Levels};
 
 /// The file listing the images, one file name per line; line `k` is light `k`.
 pub const FILENAMES: &str = "filenames.txt";
@@ -137,31 +137,29 @@ impl DiligentSet {
     /// channel at 65535 is saturated.
     pub fn load_frames(&self, progress: &dyn Progress) -> Result<Frames> {
         progress.begin("decode", self.files.len() as u64);
+        // Decoded and linearised together, in parallel (see `decode_dn_frame`).
         let images = self
             .files
             .par_iter()
             .map(|name| {
                 let (path, bytes) = read_inside(&self.dir, name)?;
-                let dn = decode_dn_image(&bytes, &path)?;
+                let (frame, size) = decode_dn_frame(&bytes, &path, &LEVELS)?;
                 progress.advance(1);
-                Ok((path, dn))
+                Ok((path, frame, size))
             })
             .collect::<Result<Vec<_>>>()?;
         progress.end();
-        let (width, height) = (images[0].1.width, images[0].1.height);
+        let (width, height) = images[0].2;
         let lights = images
             .into_iter()
-            .map(|(path, dn)| {
-                if (dn.width, dn.height) != (width, height) {
+            .map(|(path, frame, (w, h))| {
+                if (w, h) != (width, height) {
                     return Err(Error::image(
                         &path,
-                        format!(
-                            "is {}x{}, the first image is {width}x{height}",
-                            dn.width, dn.height
-                        ),
+                        format!("is {w}x{h}, the first image is {width}x{height}"),
                     ));
                 }
-                Ok(dn.to_light_frame(&LEVELS))
+                Ok(frame)
             })
             .collect::<Result<Vec<LightFrame>>>()?;
         Ok(Frames {

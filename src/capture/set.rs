@@ -403,6 +403,7 @@ impl CaptureSet {
             DECODE_STAGES[0],
             DECODE_STAGES[1],
             DECODE_STAGES[2],
+            DECODE_STAGES[3],
         ];
         let decode_one = |entry: &FrameEntry, prep: RawPrep, busy: &Busy| -> Result<DecodedFrame> {
             let (path, bytes) = self.read_frame_bytes_timed(entry, busy)?;

@@ -10,7 +10,7 @@ use serde::Serialize;
 use rayon::prelude::*;
 
 use super::decode::{decode_raw, RawMeta};
-use super::linear::{decode_dn_image, Levels};
+use super::linear::{decode_dn_frame, Levels};
 use super::mosaic::{subtract_dark, LinearMosaic, Resolution};
 use super::pass::{self, LinearPass, SampleCounts};
 use super::shading::ShadingField;
@@ -125,10 +125,13 @@ pub fn decode_frame(
     )
 }
 
-/// The stages [`decode_frame_timed`] records: the codec (rawler, or the PNG decoder), the
-/// linearisation to `f32` (black and white level), and the pass that also subtracts the dark
-/// frame and bins (`RawPrep::bin`).
-pub const DECODE_STAGES: [&str; 3] = ["decode", "linearize", BINNING_PASS_STAGE];
+/// The stages [`decode_frame_timed`] records: the RAW codec (rawler), the linearisation to
+/// `f32` (black and white level), the pass that also subtracts the dark frame and bins
+/// (`RawPrep::bin`), and a dn16 frame's decode, linearised as it is inflated.
+pub const DECODE_STAGES: [&str; 4] = ["decode", "linearize", BINNING_PASS_STAGE, DN16_DECODE_STAGE];
+
+/// The stage name of a dn16 frame's decode, which linearises its rows as they are inflated.
+pub const DN16_DECODE_STAGE: &str = "decode + linearize";
 
 /// The stage name of the one pass that linearises, subtracts the dark frame and bins 2x2.
 pub const BINNING_PASS_STAGE: &str = "linearize, dark, bin 2x2";
@@ -145,15 +148,17 @@ pub fn decode_frame_timed(
 ) -> Result<DecodedFrame> {
     match encoding {
         Encoding::Dn16 => {
-            let dn = busy.time("decode", || decode_dn_image(&bytes, path))?;
+            // Decoded and linearised in one pass, row by row (see `decode_dn_frame`).
+            let (frame, (width, height)) = busy.time(DN16_DECODE_STAGE, || {
+                decode_dn_frame(&bytes, path, dn16_levels)
+            })?;
             drop(bytes);
-            let frame = busy.time("linearize", || dn.to_light_frame(dn16_levels));
             Ok(DecodedFrame {
                 data: FrameData::Rgb(frame),
                 meta: None,
                 levels: *dn16_levels,
                 cfa_pattern: None,
-                stored_size: (dn.width, dn.height),
+                stored_size: (width, height),
                 camera_to_srgb: None,
                 counts: SampleCounts::default(),
             })

@@ -45,28 +45,124 @@ impl DnImage {
     /// Linear planes and the saturation mask (a pixel any of whose channels reached the white
     /// level carries no usable value).
     pub fn to_light_frame(&self, levels: &Levels) -> LightFrame {
-        let n = self.width * self.height;
-        let mut rgb = RgbPlanes::new(self.width, self.height);
-        let mut saturated = Mask::new(self.width, self.height, false);
-        let scale = 1.0 / (levels.white - levels.black);
-        let linear = |v: u16| ((v as f64 - levels.black) * scale) as f32;
+        let mut frame = LinearRows::new(self.width, self.height, levels);
+        for (y, row) in self.data.chunks_exact(self.width * 3).enumerate() {
+            frame.row(y, row.chunks_exact(3).map(|px| [px[0], px[1], px[2]]));
+        }
+        frame.finish()
+    }
+}
+
+/// A light frame filled row by row from DN pixels: linear `(dn - black) / (white - black)`,
+/// and a pixel is saturated where any channel reached the white level.
+struct LinearRows {
+    width: usize,
+    rgb: RgbPlanes,
+    saturated: Mask,
+    levels: Levels,
+    scale: f64,
+}
+
+impl LinearRows {
+    fn new(width: usize, height: usize, levels: &Levels) -> Self {
+        LinearRows {
+            width,
+            rgb: RgbPlanes::new(width, height),
+            saturated: Mask::new(width, height, false),
+            levels: *levels,
+            scale: 1.0 / (levels.white - levels.black),
+        }
+    }
+
+    /// Row `y` from its pixels (at most `width` of them are read).
+    #[inline]
+    fn row(&mut self, y: usize, pixels: impl Iterator<Item = [u16; 3]>) {
+        let (black, white, scale) = (self.levels.black, self.levels.white, self.scale);
+        let linear = |v: u16| ((v as f64 - black) * scale) as f32;
+        let at = y * self.width..(y + 1) * self.width;
         // Zipped iterators, not indexing: no bounds check per sample of a 16 MP frame.
-        let pixels = self.data[..n * 3]
-            .chunks_exact(3)
-            .zip(&mut rgb.r.data)
-            .zip(&mut rgb.g.data)
-            .zip(&mut rgb.b.data)
-            .zip(&mut saturated.data);
-        for ((((px, r), g), b), clipped) in pixels {
-            *clipped = px.iter().any(|&v| v as f64 >= levels.white);
+        let outputs = self.rgb.r.data[at.clone()]
+            .iter_mut()
+            .zip(&mut self.rgb.g.data[at.clone()])
+            .zip(&mut self.rgb.b.data[at.clone()])
+            .zip(&mut self.saturated.data[at]);
+        for ((((r, g), b), clipped), px) in outputs.zip(pixels) {
+            *clipped = px.iter().any(|&v| v as f64 >= white);
             (*r, *g, *b) = (linear(px[0]), linear(px[1]), linear(px[2]));
         }
+    }
+
+    fn finish(self) -> LightFrame {
         LightFrame {
-            rgb,
-            saturated: Some(saturated),
+            rgb: self.rgb,
+            saturated: Some(self.saturated),
             cfa: None,
         }
     }
+}
+
+/// A decoded frame and its stored size (width, height).
+pub type SizedFrame = (LightFrame, (usize, usize));
+
+/// Decodes a dn16 frame (a 16-bit RGB PNG or TIFF of raw digital numbers) into linear planes
+/// and returns them with the stored size: [`DnImage::to_light_frame`] of [`decode_dn_image`],
+/// value for value. A plain 16-bit RGB PNG (not interlaced, no transparency) is linearised row
+/// by row as it is inflated, with no whole-image buffer of samples (97 MB at 16 MP, written
+/// and read once more per frame); anything else takes that long way, which also names what
+/// is wrong with the file.
+pub fn decode_dn_frame(
+    bytes: &[u8],
+    path: &Path,
+    levels: &Levels,
+) -> Result<SizedFrame> {
+    if let Some(decoded) = png_rows_to_frame(bytes, levels) {
+        return decoded.map_err(|e| Error::image(path, e));
+    }
+    let dn = decode_dn_image(bytes, path)?;
+    Ok((dn.to_light_frame(levels), (dn.width, dn.height)))
+}
+
+/// [`decode_dn_frame`]'s row-by-row path; `None` for anything but a plain 16-bit RGB PNG.
+fn png_rows_to_frame(
+    bytes: &[u8],
+    levels: &Levels,
+) -> Option<std::result::Result<SizedFrame, png::DecodingError>> {
+    if !bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
+        return None;
+    }
+    let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
+    decoder.set_transformations(png::Transformations::IDENTITY);
+    // A header the png crate refuses goes the long way, which reports it.
+    let mut reader = decoder.read_info().ok()?;
+    let info = reader.info();
+    let plain = info.color_type == png::ColorType::Rgb
+        && info.bit_depth == png::BitDepth::Sixteen
+        && !info.interlaced
+        && info.trns.is_none();
+    if !plain {
+        return None;
+    }
+    let (width, height) = (info.width as usize, info.height as usize);
+    let mut frame = LinearRows::new(width, height, levels);
+    let mut y = 0;
+    let decoded = (|| {
+        while let Some(row) = reader.next_row()? {
+            if y < height {
+                // Six bytes a pixel: R, G, B big-endian.
+                let pixels = row.data().chunks_exact(6).map(|b| {
+                    [
+                        u16::from_be_bytes([b[0], b[1]]),
+                        u16::from_be_bytes([b[2], b[3]]),
+                        u16::from_be_bytes([b[4], b[5]]),
+                    ]
+                });
+                frame.row(y, pixels);
+            }
+            y += 1;
+        }
+        Ok(())
+    })();
+    Some(decoded.map(|()| (frame.finish(), (width, height))))
 }
 
 /// Reads a 16-bit RGB PNG or TIFF of raw digital numbers.
@@ -130,6 +226,63 @@ mod tests {
         let path = dir.path().join("f.png");
         std::fs::write(&path, encode_png16(&image).unwrap()).unwrap();
         assert_eq!(read_dn_image(&path).unwrap(), image);
+    }
+
+    #[test]
+    fn a_png_frame_linearised_row_by_row_equals_the_decoded_image_linearised() {
+        let levels = Levels {
+            black: 600.0,
+            white: 15600.0,
+        };
+        let (width, height) = (37, 23);
+        let mut state = 5u32;
+        let image = DnImage {
+            width,
+            height,
+            data: (0..width * height * 3)
+                .map(|_| {
+                    state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                    (state >> 18) as u16 // 0..16383: below black, in range and clipped
+                })
+                .collect(),
+        };
+        let path = Path::new("L00.png");
+        let bytes = encode_png16(&image).unwrap();
+        let (frame, size) = decode_dn_frame(&bytes, path, &levels).unwrap();
+        assert_eq!(size, (width, height));
+        let expected = decode_dn_image(&bytes, path)
+            .unwrap()
+            .to_light_frame(&levels);
+        let bits = |f: &LightFrame| -> Vec<u32> {
+            f.rgb
+                .channels()
+                .iter()
+                .flat_map(|p| p.data.iter().map(|v| v.to_bits()))
+                .collect()
+        };
+        assert_eq!(bits(&frame), bits(&expected));
+        let clipped = frame.saturated.as_ref().unwrap();
+        assert_eq!(Some(clipped), expected.saturated.as_ref());
+        assert!(clipped.data.iter().any(|&c| c) && !clipped.data.iter().all(|&c| c));
+
+        // Cut short: an error that names the file.
+        let err = decode_dn_frame(&bytes[..bytes.len() / 2], path, &levels).unwrap_err();
+        assert!(err.to_string().contains("L00.png"), "{err}");
+        // Not 16-bit RGB: the long way names what it found.
+        let mut gray = Vec::new();
+        image::DynamicImage::ImageLuma8(image::GrayImage::new(4, 4))
+            .write_to(
+                &mut std::io::Cursor::new(&mut gray),
+                image::ImageFormat::Png,
+            )
+            .unwrap();
+        let err = decode_dn_frame(&gray, path, &levels)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("16-bit RGB") && err.contains("L00.png"),
+            "{err}"
+        );
     }
 
     #[test]

@@ -31,7 +31,7 @@ pub use develop::{
     FrameData, RawPrep, BINNING_PASS_STAGE, DARK_STAGE, DECODE_STAGES,
 };
 pub use dng::{encode_dng, DngStorage};
-pub use linear::{decode_dn_image, encode_png16, read_dn_image, DnImage, Levels};
+pub use linear::{decode_dn_frame, decode_dn_image, encode_png16, read_dn_image, DnImage, Levels};
 pub use mosaic::{
     bilinear, subtract_dark, LinearMosaic, Mosaic, Resolution, BLUE, GREEN, RED, SATURATION_MARGIN,
 };
