@@ -15,9 +15,9 @@ use crate::fsutil::{create_dir_all, record_owned, sha256_hex, write_atomic};
 use crate::plane::Frames;
 use crate::progress::Progress;
 use crate::raw::{
-    below_black_floor, check_consistent, check_plausible, decode_frame_timed, develop_frames_timed,
-    DecodeInfo, DecodedFrame, DevelopOptions, Encoding, FrameData, LinearPass, RawMeta, RawPrep,
-    Resolution, SampleCounts, DECODE_STAGES,
+    check_consistent, check_plausible, decode_codec, develop_frames_timed, finish_decode, Coded,
+    DecodeInfo, DecodedFrame, DevelopOptions, Encoding, RawMeta, RawPrep, Resolution, SampleCounts,
+    DECODE_STAGES,
 };
 use crate::rig::Rig;
 use crate::timing::{Busy, StageClock};
@@ -405,47 +405,50 @@ impl CaptureSet {
             DECODE_STAGES[2],
             DECODE_STAGES[3],
         ];
-        let decode_one = |entry: &FrameEntry, prep: RawPrep, busy: &Busy| -> Result<DecodedFrame> {
+        // Read, hash check and codec of one frame, its size checked against the manifest.
+        let code_one = |entry: &FrameEntry, busy: &Busy| -> Result<(PathBuf, Coded)> {
             let (path, bytes) = self.read_frame_bytes_timed(entry, busy)?;
-            let frame = decode_frame_timed(bytes, &path, encoding, &image.levels, prep, busy)?;
-            if frame.stored_size != (image.width, image.height) {
+            let coded = decode_codec(bytes, &path, encoding, &image.levels, busy)?;
+            let (w, h) = coded.stored_size();
+            if (w, h) != (image.width, image.height) {
                 return Err(Error::image(
                     &path,
                     format!(
-                        "is {}x{}, the manifest says {}x{}",
-                        frame.stored_size.0, frame.stored_size.1, image.width, image.height
+                        "is {w}x{h}, the manifest says {}x{}",
+                        image.width, image.height
                     ),
                 ));
             }
             progress.advance(1);
-            Ok(frame)
+            Ok((path, coded))
         };
-        // RAW sets: the dark frame first, so each light frame's one linear pass (`raw::pass`)
-        // can count its samples against the dark frame's read noise and, at half
-        // resolution, subtract it and bin: no full-size linear mosaic of a light frame is
-        // made there. (The dark frame decodes on its own; rawler decodes a tiled frame's
-        // tiles in parallel.)
+        // Every frame's codec first, one frame per core (the dark frame with the lights);
+        // then the dark frame's linear pass, and the light frames' with it in hand, so each
+        // counts its samples against the dark frame's read noise and, at half resolution,
+        // subtracts it and bins in the same pass: no full-size linear mosaic of a light frame
+        // is made there (`raw::pass`). Each frame's stored samples are freed after its pass.
         let bin = encoding == Encoding::Raw && options.resolution == Resolution::Half;
         let decoded = clock.time_shared(&stages, "load frames", |busy| {
-            let dark_frame = dark
-                .map(|entry| decode_one(entry, RawPrep::default(), busy))
-                .transpose()?;
-            let pass = LinearPass {
-                dark: match (&dark_frame, bin && subtracted.is_some()) {
-                    (
-                        Some(DecodedFrame {
-                            data: FrameData::Mosaic(m),
-                            ..
-                        }),
-                        true,
-                    ) => Some(m),
-                    _ => None,
-                },
-                below_black_floor: dark_frame.as_ref().and_then(below_black_floor),
-            };
-            let lights = entries
+            let mut coded = jobs
                 .par_iter()
-                .map(|entry| decode_one(entry, RawPrep { pass, bin }, busy))
+                .map(|entry| code_one(entry, busy))
+                .collect::<Result<Vec<(PathBuf, Coded)>>>()?
+                .into_iter();
+            let finish = |(path, coded): (PathBuf, Coded), prep: RawPrep| {
+                finish_decode(coded, &path, prep, busy)
+            };
+            let dark_frame = match dark {
+                Some(_) => Some(finish(
+                    coded.next().expect("the dark frame"),
+                    RawPrep::default(),
+                )?),
+                None => None,
+            };
+            let prep = RawPrep::for_lights(dark_frame.as_ref(), subtracted.is_some(), bin);
+            let lights = coded
+                .collect::<Vec<_>>()
+                .into_par_iter()
+                .map(|c| finish(c, prep))
                 .collect::<Result<Vec<DecodedFrame>>>()?;
             Ok::<_, Error>(dark_frame.into_iter().chain(lights).collect::<Vec<_>>())
         })?;

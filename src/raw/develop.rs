@@ -9,7 +9,7 @@ use serde::Serialize;
 
 use rayon::prelude::*;
 
-use super::decode::{decode_raw, RawMeta};
+use super::decode::{decode_raw, DecodedRaw, RawMeta};
 use super::linear::{decode_dn_frame, Levels};
 use super::mosaic::{subtract_dark, LinearMosaic, Resolution};
 use super::pass::{self, LinearPass, SampleCounts};
@@ -146,14 +146,64 @@ pub fn decode_frame_timed(
     prep: RawPrep,
     busy: &Busy,
 ) -> Result<DecodedFrame> {
+    let coded = decode_codec(bytes, path, encoding, dn16_levels, busy)?;
+    finish_decode(coded, path, prep, busy)
+}
+
+impl<'a> RawPrep<'a> {
+    /// The light frames' pass of a set: counted against `dark`'s read noise where there is
+    /// one (see [`below_black_floor`]); with `bin`, binned 2x2 and, with `subtract`, `dark`
+    /// subtracted in the same pass (at full resolution it is subtracted later, with the
+    /// stack).
+    pub fn for_lights(dark: Option<&'a DecodedFrame>, subtract: bool, bin: bool) -> Self {
+        let dark_mosaic = match dark.map(|d| &d.data) {
+            Some(FrameData::Mosaic(m)) if bin && subtract => Some(m),
+            _ => None,
+        };
+        RawPrep {
+            pass: LinearPass {
+                dark: dark_mosaic,
+                below_black_floor: dark.and_then(below_black_floor),
+            },
+            bin,
+        }
+    }
+}
+
+/// A frame through its codec, before its linear pass: a set decodes every frame's codec at
+/// once (one per core), then runs the light frames' passes with the dark frame in hand.
+pub enum Coded {
+    /// A RAW frame's CFA samples as stored.
+    Raw(Box<DecodedRaw>),
+    /// A dn16 frame, decoded and linearised in one go (see `decode_dn_frame`).
+    Done(Box<DecodedFrame>),
+}
+
+impl Coded {
+    /// The size of the stored image (RAW: the mosaic).
+    pub fn stored_size(&self) -> (usize, usize) {
+        match self {
+            Coded::Raw(raw) => (raw.mosaic.width, raw.mosaic.height),
+            Coded::Done(frame) => frame.stored_size,
+        }
+    }
+}
+
+/// Runs a frame's codec (rawler, or the dn16 decoder, which linearises as it goes), its time
+/// going to `busy`.
+pub fn decode_codec(
+    bytes: Vec<u8>,
+    path: &Path,
+    encoding: Encoding,
+    dn16_levels: &Levels,
+    busy: &Busy,
+) -> Result<Coded> {
     match encoding {
         Encoding::Dn16 => {
-            // Decoded and linearised in one pass, row by row (see `decode_dn_frame`).
             let (frame, (width, height)) = busy.time(DN16_DECODE_STAGE, || {
                 decode_dn_frame(&bytes, path, dn16_levels)
             })?;
-            drop(bytes);
-            Ok(DecodedFrame {
+            Ok(Coded::Done(Box::new(DecodedFrame {
                 data: FrameData::Rgb(frame),
                 meta: None,
                 levels: *dn16_levels,
@@ -161,32 +211,46 @@ pub fn decode_frame_timed(
                 stored_size: (width, height),
                 camera_to_srgb: None,
                 counts: SampleCounts::default(),
-            })
+            })))
         }
-        Encoding::Raw => {
-            let raw = busy.time("decode", || decode_raw(bytes, path))?;
-            let (data, counts) = if prep.bin {
-                busy.time(BINNING_PASS_STAGE, || pass::bin2x2(&raw.mosaic, prep.pass))
-                    .map(|(frame, counts)| (FrameData::Binned(frame), counts))
-            } else {
-                busy.time("linearize", || pass::linearize(&raw.mosaic, prep.pass))
-                    .map(|(mosaic, counts)| (FrameData::Mosaic(mosaic), counts))
-            }
-            .map_err(|e| Error::image(path, e))?;
-            Ok(DecodedFrame {
-                data,
-                counts,
-                levels: Levels {
-                    black: raw.mosaic.mean_black(),
-                    white: raw.mosaic.white as f64,
-                },
-                cfa_pattern: Some(raw.mosaic.pattern_name()),
-                stored_size: (raw.mosaic.width, raw.mosaic.height),
-                meta: Some(raw.meta),
-                camera_to_srgb: raw.camera_to_srgb,
-            })
-        }
+        Encoding::Raw => Ok(Coded::Raw(Box::new(
+            busy.time("decode", || decode_raw(bytes, path))?,
+        ))),
     }
+}
+
+/// A RAW frame's linear pass as `prep` says (see `raw::pass`), its time going to `busy`; a
+/// dn16 frame is already done.
+pub fn finish_decode(
+    coded: Coded,
+    path: &Path,
+    prep: RawPrep,
+    busy: &Busy,
+) -> Result<DecodedFrame> {
+    let raw = match coded {
+        Coded::Done(frame) => return Ok(*frame),
+        Coded::Raw(raw) => raw,
+    };
+    let (data, counts) = if prep.bin {
+        busy.time(BINNING_PASS_STAGE, || pass::bin2x2(&raw.mosaic, prep.pass))
+            .map(|(frame, counts)| (FrameData::Binned(frame), counts))
+    } else {
+        busy.time("linearize", || pass::linearize(&raw.mosaic, prep.pass))
+            .map(|(mosaic, counts)| (FrameData::Mosaic(mosaic), counts))
+    }
+    .map_err(|e| Error::image(path, e))?;
+    Ok(DecodedFrame {
+        data,
+        counts,
+        levels: Levels {
+            black: raw.mosaic.mean_black(),
+            white: raw.mosaic.white as f64,
+        },
+        cfa_pattern: Some(raw.mosaic.pattern_name()),
+        stored_size: (raw.mosaic.width, raw.mosaic.height),
+        meta: Some(raw.meta),
+        camera_to_srgb: raw.camera_to_srgb,
+    })
 }
 
 /// Develops a set's light frames: the dark frame (when given) subtracted, RAW frames binned

@@ -110,11 +110,7 @@ pub type SizedFrame = (LightFrame, (usize, usize));
 /// by row as it is inflated, with no whole-image buffer of samples (97 MB at 16 MP, written
 /// and read once more per frame); anything else takes that long way, which also names what
 /// is wrong with the file.
-pub fn decode_dn_frame(
-    bytes: &[u8],
-    path: &Path,
-    levels: &Levels,
-) -> Result<SizedFrame> {
+pub fn decode_dn_frame(bytes: &[u8], path: &Path, levels: &Levels) -> Result<SizedFrame> {
     if let Some(decoded) = png_rows_to_frame(bytes, levels) {
         return decoded.map_err(|e| Error::image(path, e));
     }

@@ -202,12 +202,6 @@ impl Mosaic {
         let darkest = self.black.iter().flatten().fold(0.0f32, |a, &b| a.max(b));
         self.white - SATURATION_MARGIN * (self.white - darkest)
     }
-
-    /// The samples as linear values (per-site black subtracted, 1.0 at the white level) with
-    /// their saturation flags.
-    pub fn linearize(&self) -> Result<LinearMosaic> {
-        Ok(super::pass::linearize(self, super::pass::LinearPass::default())?.0)
-    }
 }
 
 /// A mosaic's samples in linear units, with their saturation flags.

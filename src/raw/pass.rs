@@ -103,6 +103,15 @@ fn check_dark(mosaic: &Mosaic, dark: Option<&LinearMosaic>) -> Result<()> {
     }
 }
 
+impl Mosaic {
+    /// The samples as linear values (per-site black subtracted, 1.0 at the white level) with
+    /// their saturation flags: [`linearize`] with nothing else to do. (Defined here, beside
+    /// the pass that computes it, so `mosaic` need not import this module.)
+    pub fn linearize(&self) -> Result<LinearMosaic> {
+        Ok(linearize(self, LinearPass::default())?.0)
+    }
+}
+
 /// Linearises `mosaic` and counts its samples for the plausibility check, subtracting
 /// `pass.dark` where given: `mosaic.linearize()` then `LinearMosaic::subtract`, in one pass.
 pub fn linearize(mosaic: &Mosaic, pass: LinearPass) -> Result<(LinearMosaic, SampleCounts)> {
@@ -261,6 +270,15 @@ mod tests {
                         below_black_floor: floor,
                     };
                     let separate = light.linearize().unwrap();
+                    // Linear values by the formula, sample by sample.
+                    for (i, &raw) in light.samples.iter().enumerate() {
+                        let (x, y) = (i % w, i / w);
+                        let black = light.black[y % 2][x % 2];
+                        let scale = 1.0 / (light.white - black);
+                        assert_eq!(separate.values[i], (raw as f32 - black) * scale);
+                        let threshold = light.saturation_threshold();
+                        assert_eq!(separate.saturated[i], raw as f32 >= threshold);
+                    }
                     let expected_counts = counts_of(&separate, floor);
                     if w * h >= 1000 {
                         assert!(expected_counts.clipped > 0, "the test mosaic clips");
