@@ -397,14 +397,10 @@ impl CaptureSet {
         let subtracted = dark.filter(|_| options.subtract_dark);
         let jobs: Vec<&FrameEntry> = dark.into_iter().chain(entries.iter().copied()).collect();
         progress.begin("decode", jobs.len() as u64);
-        let stages = [
-            READ_STAGE,
-            HASH_STAGE,
-            DECODE_STAGES[0],
-            DECODE_STAGES[1],
-            DECODE_STAGES[2],
-            DECODE_STAGES[3],
-        ];
+        let stages: Vec<&'static str> = [READ_STAGE, HASH_STAGE]
+            .into_iter()
+            .chain(DECODE_STAGES)
+            .collect();
         // Read, hash check and codec of one frame, its size checked against the manifest.
         let code_one = |entry: &FrameEntry, busy: &Busy| -> Result<(PathBuf, Coded)> {
             let (path, bytes) = self.read_frame_bytes_timed(entry, busy)?;

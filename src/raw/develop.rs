@@ -115,19 +115,15 @@ pub fn decode_frame(
     encoding: Encoding,
     dn16_levels: &Levels,
 ) -> Result<DecodedFrame> {
-    decode_frame_timed(
-        bytes,
-        path,
-        encoding,
-        dn16_levels,
-        RawPrep::default(),
-        &Busy::new(&DECODE_STAGES),
-    )
+    // Untimed: the stages go to a clock nobody reads.
+    let busy = Busy::new(&DECODE_STAGES);
+    let coded = decode_codec(bytes, path, encoding, dn16_levels, &busy)?;
+    finish_decode(coded, path, RawPrep::default(), &busy)
 }
 
-/// The stages [`decode_frame_timed`] records: the RAW codec (rawler), the linearisation to
-/// `f32` (black and white level), the pass that also subtracts the dark frame and bins
-/// (`RawPrep::bin`), and a dn16 frame's decode, linearised as it is inflated.
+/// The stages [`decode_codec`] and [`finish_decode`] record: the RAW codec (rawler), the
+/// linearisation to `f32` (black and white level), the pass that also subtracts the dark
+/// frame and bins (`RawPrep::bin`), and a dn16 frame's decode, linearised as it is inflated.
 pub const DECODE_STAGES: [&str; 4] = ["decode", "linearize", BINNING_PASS_STAGE, DN16_DECODE_STAGE];
 
 /// The stage name of a dn16 frame's decode, which linearises its rows as they are inflated.
@@ -135,20 +131,6 @@ pub const DN16_DECODE_STAGE: &str = "decode + linearize";
 
 /// The stage name of the one pass that linearises, subtracts the dark frame and bins 2x2.
 pub const BINNING_PASS_STAGE: &str = "linearize, dark, bin 2x2";
-
-/// [`decode_frame`], adding the codec's and the linear pass's time to `busy` (which holds
-/// [`DECODE_STAGES`]); RAW frames are prepared as `prep` says.
-pub fn decode_frame_timed(
-    bytes: Vec<u8>,
-    path: &Path,
-    encoding: Encoding,
-    dn16_levels: &Levels,
-    prep: RawPrep,
-    busy: &Busy,
-) -> Result<DecodedFrame> {
-    let coded = decode_codec(bytes, path, encoding, dn16_levels, busy)?;
-    finish_decode(coded, path, prep, busy)
-}
 
 impl<'a> RawPrep<'a> {
     /// The light frames' pass of a set: counted against `dark`'s read noise where there is

@@ -27,9 +27,8 @@ pub use decode::{
 };
 pub use develop::{
     below_black_floor, check_consistent, check_plausible, decode_codec, decode_frame,
-    decode_frame_timed, develop_frames, develop_frames_timed, finish_decode, Coded, DecodeInfo,
-    DecodedFrame, DevelopOptions, Encoding, FrameData, RawPrep, BINNING_PASS_STAGE, DARK_STAGE,
-    DECODE_STAGES,
+    develop_frames, develop_frames_timed, finish_decode, Coded, DecodeInfo, DecodedFrame,
+    DevelopOptions, Encoding, FrameData, RawPrep, BINNING_PASS_STAGE, DARK_STAGE, DECODE_STAGES,
 };
 pub use dng::{encode_dng, DngStorage};
 pub use linear::{decode_dn_frame, decode_dn_image, encode_png16, read_dn_image, DnImage, Levels};

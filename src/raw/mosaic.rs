@@ -263,40 +263,71 @@ impl LinearMosaic {
 
     /// 2x2 binning: R and B of each cell, the mean of its two G.
     pub(super) fn bin2x2(&self) -> LightFrame {
-        let (w, h) = Resolution::Half.size(self.width, self.height);
-        let mut rgb = RgbPlanes::new(w, h);
-        let mut saturated = Mask::new(w, h, false);
         let width = self.width;
-        rgb.r
-            .data
-            .par_chunks_mut(w.max(1))
-            .zip(rgb.g.data.par_chunks_mut(w.max(1)))
-            .zip(rgb.b.data.par_chunks_mut(w.max(1)))
-            .zip(saturated.data.par_chunks_mut(w.max(1)))
-            .enumerate()
-            .for_each(|(v, (((r, g), b), sat))| {
-                for u in 0..w {
-                    let mut sum = [0.0f32; 3];
-                    let mut any_saturated = false;
-                    for j in 0..2 {
-                        for i in 0..2 {
-                            let at = (2 * v + j) * width + 2 * u + i;
-                            any_saturated |= self.saturated[at];
-                            sum[self.pattern[j][i] as usize] += self.values[at];
-                        }
-                    }
-                    r[u] = sum[0];
-                    g[u] = 0.5 * sum[1];
-                    b[u] = sum[2];
-                    sat[u] = any_saturated;
-                }
-            });
-        LightFrame {
-            rgb,
-            saturated: Some(saturated),
-            cfa: None,
-        }
+        let (frame, _) = bin_cells(
+            (self.width, self.height),
+            self.pattern,
+            || (),
+            |x, y, _| (self.values[y * width + x], self.saturated[y * width + x]),
+        );
+        frame
     }
+}
+
+/// 2x2 binning of a `width x height` mosaic laid out as `pattern`, whose sample at `(x, y)` is
+/// `sample(x, y, acc)` (its linear value and whether it is saturated): R and B of each cell,
+/// the mean of its two G, saturated where any of its samples is. Rows of cells run in
+/// parallel, each with its own `acc` from `new_acc`, returned one per row of cells. Every
+/// sample of those rows is read, the odd last column's too (not binned), so `sample` can count
+/// what it reads; an odd last row is not read.
+pub(super) fn bin_cells<A: Send>(
+    (width, height): (usize, usize),
+    pattern: [[u8; 2]; 2],
+    new_acc: impl Fn() -> A + Sync,
+    sample: impl Fn(usize, usize, &mut A) -> (f32, bool) + Sync,
+) -> (LightFrame, Vec<A>) {
+    let (w, h) = Resolution::Half.size(width, height);
+    let mut rgb = RgbPlanes::new(w, h);
+    let mut saturated = Mask::new(w, h, false);
+    let accs = rgb
+        .r
+        .data
+        .par_chunks_mut(w.max(1))
+        .zip(rgb.g.data.par_chunks_mut(w.max(1)))
+        .zip(rgb.b.data.par_chunks_mut(w.max(1)))
+        .zip(saturated.data.par_chunks_mut(w.max(1)))
+        .enumerate()
+        .map(|(v, (((r, g), b), sat))| {
+            let mut acc = new_acc();
+            for u in 0..w {
+                let mut sum = [0.0f32; 3];
+                let mut any_saturated = false;
+                for j in 0..2 {
+                    for i in 0..2 {
+                        let (value, s) = sample(2 * u + i, 2 * v + j, &mut acc);
+                        any_saturated |= s;
+                        sum[pattern[j][i] as usize] += value;
+                    }
+                }
+                r[u] = sum[0];
+                g[u] = 0.5 * sum[1];
+                b[u] = sum[2];
+                sat[u] = any_saturated;
+            }
+            for x in 2 * w..width {
+                for y in [2 * v, 2 * v + 1] {
+                    sample(x, y, &mut acc);
+                }
+            }
+            acc
+        })
+        .collect();
+    let frame = LightFrame {
+        rgb,
+        saturated: Some(saturated),
+        cfa: None,
+    };
+    (frame, accs)
 }
 
 /// Mirrors an index about the border of a line of `n` samples (keeps the CFA phase where

@@ -15,9 +15,9 @@
 
 use rayon::prelude::*;
 
-use super::mosaic::{LinearMosaic, Mosaic, Resolution};
+use super::mosaic::{bin_cells, LinearMosaic, Mosaic, Resolution};
 use crate::error::Result;
-use crate::plane::{LightFrame, Mask, RgbPlanes};
+use crate::plane::LightFrame;
 
 /// What a pass counted over a light frame's own samples (before any dark frame is
 /// subtracted), for `develop::check_plausible`.
@@ -164,9 +164,6 @@ pub fn bin2x2(mosaic: &Mosaic, pass: LinearPass) -> Result<(LightFrame, SampleCo
     check_dark(mosaic, pass.dark)?;
     let sites = Sites::of(mosaic);
     let (width, height) = (mosaic.width, mosaic.height);
-    let (w, h) = Resolution::Half.size(width, height);
-    let mut rgb = RgbPlanes::new(w, h);
-    let mut saturated = Mask::new(w, h, false);
     // A sample's linear value after the dark frame, its saturation, and the counts.
     let sample = |x: usize, y: usize, counts: &mut SampleCounts| -> (f32, bool) {
         let at = y * width + x;
@@ -177,53 +174,22 @@ pub fn bin2x2(mosaic: &Mosaic, pass: LinearPass) -> Result<(LightFrame, SampleCo
             None => (value, sat),
         }
     };
-    let binned = rgb
-        .r
-        .data
-        .par_chunks_mut(w.max(1))
-        .zip(rgb.g.data.par_chunks_mut(w.max(1)))
-        .zip(rgb.b.data.par_chunks_mut(w.max(1)))
-        .zip(saturated.data.par_chunks_mut(w.max(1)))
-        .enumerate()
-        .map(|(v, (((r, g), b), sat))| {
-            let mut counts = empty_counts(&pass, 2 * width);
-            for u in 0..w {
-                let mut sum = [0.0f32; 3];
-                let mut any_saturated = false;
-                for j in 0..2 {
-                    for i in 0..2 {
-                        let (value, s) = sample(2 * u + i, 2 * v + j, &mut counts);
-                        any_saturated |= s;
-                        sum[mosaic.pattern[j][i] as usize] += value;
-                    }
-                }
-                r[u] = sum[0];
-                g[u] = 0.5 * sum[1];
-                b[u] = sum[2];
-                sat[u] = any_saturated;
-            }
-            // An odd last column is not binned, but it is counted.
-            for x in 2 * w..width {
-                for y in [2 * v, 2 * v + 1] {
-                    sample(x, y, &mut counts);
-                }
-            }
-            counts
-        })
-        .reduce(|| empty_counts(&pass, 0), SampleCounts::plus);
-    // An odd last row likewise.
+    let (frame, rows) = bin_cells(
+        (width, height),
+        mosaic.pattern,
+        || empty_counts(&pass, 2 * width),
+        sample,
+    );
+    // The odd last row is not binned, but it is counted.
+    let h = Resolution::Half.size(width, height).1;
     let mut rest = empty_counts(&pass, (height - 2 * h) * width);
     for y in 2 * h..height {
         for x in 0..width {
             sample(x, y, &mut rest);
         }
     }
-    let frame = LightFrame {
-        rgb,
-        saturated: Some(saturated),
-        cfa: None,
-    };
-    Ok((frame, binned.plus(rest)))
+    let counts = rows.into_iter().fold(rest, SampleCounts::plus);
+    Ok((frame, counts))
 }
 
 #[cfg(test)]
