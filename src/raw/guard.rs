@@ -38,11 +38,7 @@ pub fn check_structure(data: &[u8]) -> Result<(), String> {
 /// in the file whose first IFD looks like one (a sane entry count, entries of known types) is
 /// walked; random bytes that happen to read "II*\0" almost never pass that test.
 fn check_embedded_tiffs(data: &[u8]) -> Result<(), String> {
-    for at in 1..data.len().saturating_sub(8) {
-        let head = &data[at..at + 4];
-        if head != b"II*\0" && head != b"MM\0*" {
-            continue;
-        }
+    for at in tiff_headers(data) {
         let Some(tiff) = Tiff::at(data, at) else {
             continue;
         };
@@ -54,6 +50,20 @@ fn check_embedded_tiffs(data: &[u8]) -> Result<(), String> {
         }
     }
     Ok(())
+}
+
+/// Every position after the first byte where a TIFF header ("II*\0" or "MM\0*") starts and
+/// 8 bytes fit, in order. A SIMD substring search: a byte-by-byte scan of a frame's tens of
+/// megabytes cost more than the rest of the structure check.
+fn tiff_headers(data: &[u8]) -> Vec<usize> {
+    let end = data.len().saturating_sub(8);
+    let mut at: Vec<usize> = [&b"II*\0"[..], &b"MM\0*"[..]]
+        .iter()
+        .flat_map(|needle| memchr::memmem::find_iter(data, needle))
+        .filter(|&at| at >= 1 && at < end)
+        .collect();
+    at.sort_unstable();
+    at
 }
 
 #[derive(Default)]
@@ -512,6 +522,30 @@ fn check_bmff(data: &[u8], start: usize, end: usize, depth: usize) -> Result<(),
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn tiff_headers_are_found_where_a_byte_by_byte_scan_finds_them() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        let mut data: Vec<u8> = (0..100_000).map(|_| rng.gen_range(0..4u8) * 0x15).collect();
+        // Headers at the start (not embedded), back to back, mixed, and too near the end.
+        for (at, head) in [
+            (0, b"II*\0"),
+            (500, b"MM\0*"),
+            (504, b"II*\0"),
+            (70_000, b"II*\0"),
+        ] {
+            data[at..at + 4].copy_from_slice(head);
+        }
+        let n = data.len();
+        data[n - 8..n - 4].copy_from_slice(b"MM\0*");
+        data[n - 9..n - 5].copy_from_slice(b"II*\0");
+        let by_byte: Vec<usize> = (1..n - 8)
+            .filter(|&at| &data[at..at + 4] == b"II*\0" || &data[at..at + 4] == b"MM\0*")
+            .collect();
+        assert_eq!(tiff_headers(&data), by_byte);
+        assert_eq!(by_byte, [500, 504, 70_000, n - 9]);
+    }
 
     fn tiff_with_entry(tag: u16, typ: u16, count: u32, value: u32) -> Vec<u8> {
         let mut d = b"II*\0".to_vec();
