@@ -9,6 +9,19 @@ pub fn angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
     a.cross(b).norm().atan2(a.dot(b)).to_degrees()
 }
 
+/// `x.round()` (half away from zero) for `0 <= x < 2^31`, and 0 for NaN, as the standard
+/// library's `round` then an `as` cast to an unsigned integer give. Without target features
+/// beyond SSE2 `round` (and `trunc`) is a libm call per value; the integer conversion here is
+/// one instruction and vectorises, which matters where every sample of a 16 MP map is
+/// quantised. The fraction `x - trunc(x)` is exact in this range, so ties go up as `round`'s
+/// do (adding a half before truncating does not: the float just below 0.5 plus 0.5 is 1).
+#[inline(always)]
+pub fn round_non_negative(x: f32) -> f32 {
+    // Truncation toward zero; NaN converts to 0 and then fails the comparison.
+    let whole = (x as i32) as f32;
+    whole + if x - whole >= 0.5 { 1.0 } else { 0.0 }
+}
+
 /// `exp(-e)` in single precision for `e` in `[0, 87]`, branch-free so that a loop of it
 /// vectorises (the standard library's `expf` is a call per value). Written with plain
 /// multiplies and adds (no fused multiply-add), so it gives the same bits on every CPU and
@@ -41,6 +54,27 @@ pub fn exp_neg(e: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn round_non_negative_is_round_over_the_range_maps_are_quantised_in() {
+        // Every float within a few ulps of each integer and each tie up to 2^16, a sweep, the
+        // largest float below 0.5, and NaN (which `as` casts turn into 0 either way).
+        let mut values = vec![0.0f32, -0.0, 0.5f32.next_down(), 0.5, f32::NAN];
+        for k in 0..=65_536u32 {
+            for centre in [k as f32, k as f32 + 0.5] {
+                let bits = centre.to_bits() as i64;
+                values.extend((-3..=3).map(|d| f32::from_bits((bits + d).max(0) as u32)));
+            }
+        }
+        values.extend((0..1_000_000).map(|i| i as f32 * 0.065_537));
+        for v in values {
+            let (got, want) = (round_non_negative(v), v.round());
+            assert!(
+                got == want || (got == 0.0 && want.is_nan()),
+                "{v:e}: {got} vs {want}"
+            );
+        }
+    }
 
     #[test]
     fn exp_neg_is_within_its_stated_error_of_the_exact_exponential() {

@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 
 use rayon::prelude::*;
 
+use crate::math::round_non_negative;
 use crate::plane::Plane;
 use crate::solve::{PixelStatus, SolveResult};
 
@@ -43,7 +44,7 @@ pub fn normal_planes(result: &SolveResult, convention: NormalConvention) -> [Pla
 /// `[-1, 1]` to 16-bit unsigned: `round((v * 0.5 + 0.5) * 65535)`.
 #[inline]
 pub fn unit_to_u16(v: f32) -> u16 {
-    ((v.clamp(-1.0, 1.0) * 0.5 + 0.5) * 65535.0).round() as u16
+    round_non_negative((v.clamp(-1.0, 1.0) * 0.5 + 0.5) * 65535.0) as u16
 }
 
 /// 16-bit value back to `[-1, 1]`.
@@ -94,7 +95,7 @@ pub fn albedo_rgb16(result: &SolveResult, camera_to_srgb: Option<&[[f64; 3]; 3]>
     };
     let [r, g, b] = albedo;
     let mut out = interleave(result.width, [r, g, b], |_, v| {
-        (linear_to_srgb(v) * 65535.0).round() as u16
+        round_non_negative(linear_to_srgb(v) * 65535.0) as u16
     });
     out.par_chunks_mut(3)
         .zip(result.status.par_iter())
