@@ -157,19 +157,7 @@ pub fn compare_with_errors(
     angles: &mut [f64],
     albedo: &[Plane; 3],
 ) -> TruthComparison {
-    use rayon::prelude::*;
-    // Relative errors in single precision: the figures are reported to three digits.
-    let mut albedo_errors: Vec<f32> = (0..result.status.len())
-        .into_par_iter()
-        .filter(|&i| result.status[i] == PixelStatus::Solved)
-        .flat_map_iter(|i| {
-            (0..3).filter_map(move |c| {
-                let truth = albedo[c].data[i] as f64;
-                (truth > 0.0)
-                    .then(|| ((result.albedo[c].data[i] as f64 - truth).abs() / truth) as f32)
-            })
-        })
-        .collect();
+    let mut albedo_errors = albedo_relative_errors(result, albedo);
     let pixels = angles.len();
     let (normal_error_deg, albedo_rel_error) =
         rayon::join(|| Stats::of(angles), || Stats::of_f32(&mut albedo_errors));
@@ -178,6 +166,46 @@ pub fn compare_with_errors(
         normal_error_deg,
         albedo_rel_error,
     }
+}
+
+/// The relative albedo error of every channel of every solved pixel whose true albedo is
+/// positive, in single precision (the figures are reported to three digits), in pixel order.
+/// Counted block by block first, then written straight into one vector: a parallel collect
+/// of a filtered iterator gathers per-thread vectors and copies them into the result, at
+/// 16 MP a second 190 MB of fresh pages.
+fn albedo_relative_errors(result: &SolveResult, albedo: &[Plane; 3]) -> Vec<f32> {
+    use rayon::prelude::*;
+    const BLOCK: usize = 1 << 16;
+    let n = result.status.len();
+    let error = |i: usize, c: usize| {
+        let truth = albedo[c].data[i] as f64;
+        (result.status[i] == PixelStatus::Solved && truth > 0.0)
+            .then(|| ((result.albedo[c].data[i] as f64 - truth).abs() / truth) as f32)
+    };
+    let counts: Vec<usize> = (0..n.div_ceil(BLOCK))
+        .into_par_iter()
+        .map(|b| {
+            (b * BLOCK..((b + 1) * BLOCK).min(n))
+                .map(|i| (0..3).filter(|&c| error(i, c).is_some()).count())
+                .sum()
+        })
+        .collect();
+    let mut out = vec![0.0f32; counts.iter().sum()];
+    let mut slices = Vec::with_capacity(counts.len());
+    let mut rest = out.as_mut_slice();
+    for &count in &counts {
+        let (head, tail) = rest.split_at_mut(count);
+        slices.push(head);
+        rest = tail;
+    }
+    slices.into_par_iter().enumerate().for_each(|(b, slice)| {
+        let errors = (b * BLOCK..((b + 1) * BLOCK).min(n))
+            .flat_map(|i| (0..3).filter_map(move |c| error(i, c)));
+        for (slot, e) in slice.iter_mut().zip(errors) {
+            *slot = e;
+        }
+    });
+    out
 }
 
 /// Normals against a ground-truth normal map over an object mask, as photometric-stereo
@@ -226,6 +254,38 @@ pub fn compare_normals_over_mask(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn albedo_errors_are_those_of_solved_pixels_with_positive_truth_in_pixel_order() {
+        // Over several blocks, with unsolved pixels and channels whose truth is 0.
+        let (w, h) = (1000, 150);
+        let mut result = SolveResult::new(w, h);
+        let mut truth: [Plane; 3] = std::array::from_fn(|_| Plane::new(w, h, 0.0));
+        for i in 0..w * h {
+            if i % 7 != 3 {
+                result.status[i] = PixelStatus::Solved;
+            }
+            for c in 0..3 {
+                result.albedo[c].data[i] = ((i * (c + 3)) % 101) as f32 * 0.01;
+                truth[c].data[i] = if (i + c) % 11 == 0 {
+                    0.0
+                } else {
+                    ((i * (c + 5)) % 97 + 1) as f32 * 0.01
+                };
+            }
+        }
+        let mut want = Vec::new();
+        for i in 0..w * h {
+            for c in 0..3 {
+                let t = truth[c].data[i] as f64;
+                if result.status[i] == PixelStatus::Solved && t > 0.0 {
+                    want.push(((result.albedo[c].data[i] as f64 - t).abs() / t) as f32);
+                }
+            }
+        }
+        assert!(want.len() > 300_000, "{}", want.len());
+        assert_eq!(albedo_relative_errors(&result, &truth), want);
+    }
 
     #[test]
     fn stats_of_a_known_list() {

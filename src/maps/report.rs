@@ -159,8 +159,15 @@ pub struct Histogram {
 impl Histogram {
     /// 40 bins up to the 99th percentile of the values (rounded up to a readable width).
     pub fn of_errors(values: &[f64]) -> Histogram {
+        Histogram::of_errors_reordering(&mut values.to_vec())
+    }
+
+    /// [`Histogram::of_errors`] in place: `values` are left in another order. At 16 MP that
+    /// spares a copy of 16 M values (128 MB of fresh pages) where the caller is done with
+    /// their order.
+    pub fn of_errors_reordering(values: &mut [f64]) -> Histogram {
         const BINS: usize = 40;
-        let mut finite: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+        let finite = finite_first(values);
         // The 99th percentile by selection, not a full sort (16 M values at 16 MP); the bins
         // count the values in any order.
         let p99 = match finite.len() {
@@ -176,7 +183,7 @@ impl Histogram {
         let bin_deg = ((p99 / BINS as f64) / step).ceil() * step;
         let mut counts = vec![0; BINS];
         let mut above = 0;
-        for v in &finite {
+        for v in finite.iter() {
             match counts.get_mut((v / bin_deg) as usize) {
                 Some(c) => *c += 1,
                 None => above += 1,
@@ -189,6 +196,18 @@ impl Histogram {
             pixels: finite.len(),
         }
     }
+}
+
+/// Moves the finite values to the front of `values` (in some order) and returns them.
+fn finite_first(values: &mut [f64]) -> &mut [f64] {
+    let mut finite = 0;
+    for i in 0..values.len() {
+        if values[i].is_finite() {
+            values.swap(finite, i);
+            finite += 1;
+        }
+    }
+    &mut values[..finite]
 }
 
 /// A mean; NaN (JSON `null`, "n/a" in the CLI) when it could not be computed.
@@ -424,5 +443,29 @@ mod tests {
         let empty = Histogram::of_errors(&[f64::NAN]);
         assert_eq!((empty.pixels, empty.above), (0, 0));
         assert!((empty.bin_deg - 0.03).abs() < 1e-12, "{}", empty.bin_deg);
+        // In place: the same histogram, with non-finite values among the finite ones, and the
+        // same values left behind in another order.
+        let mut mixed = values.clone();
+        mixed.swap(0, 1000);
+        let in_place = Histogram::of_errors_reordering(&mut mixed);
+        assert_eq!(
+            (
+                in_place.bin_deg,
+                &in_place.counts,
+                in_place.above,
+                in_place.pixels
+            ),
+            (h.bin_deg, &h.counts, h.above, h.pixels)
+        );
+        let sorted = |v: &[f64]| {
+            let mut v = v.to_vec();
+            v.sort_by(f64::total_cmp);
+            v
+        };
+        assert_eq!(sorted(&mixed).len(), values.len());
+        assert!(sorted(&mixed)
+            .iter()
+            .zip(&sorted(&values))
+            .all(|(a, b)| a.total_cmp(b).is_eq()));
     }
 }

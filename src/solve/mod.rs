@@ -167,7 +167,7 @@ pub struct SolveResult {
 impl SolveResult {
     /// Outputs prefilled with the unsolved defaults (`OutsideMask`, normal (0, 0, 1)), for
     /// solvers that skip pixels.
-    fn new(width: usize, height: usize) -> Self {
+    pub(crate) fn new(width: usize, height: usize) -> Self {
         let mut result = SolveResult::zeroed(width, height);
         result.normal[2].data.fill(1.0);
         result.status.fill(PixelStatus::OutsideMask);
