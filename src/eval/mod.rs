@@ -177,16 +177,18 @@ fn albedo_relative_errors(result: &SolveResult, albedo: &[Plane; 3]) -> Vec<f32>
     use rayon::prelude::*;
     const BLOCK: usize = 1 << 16;
     let n = result.status.len();
+    let kept =
+        |i: usize, c: usize| result.status[i] == PixelStatus::Solved && albedo[c].data[i] > 0.0;
     let error = |i: usize, c: usize| {
         let truth = albedo[c].data[i] as f64;
-        (result.status[i] == PixelStatus::Solved && truth > 0.0)
-            .then(|| ((result.albedo[c].data[i] as f64 - truth).abs() / truth) as f32)
+        kept(i, c).then(|| ((result.albedo[c].data[i] as f64 - truth).abs() / truth) as f32)
     };
+    // The count pass tests which values are kept; only the fill computes them.
     let counts: Vec<usize> = (0..n.div_ceil(BLOCK))
         .into_par_iter()
         .map(|b| {
             (b * BLOCK..((b + 1) * BLOCK).min(n))
-                .map(|i| (0..3).filter(|&c| error(i, c).is_some()).count())
+                .map(|i| (0..3).filter(|&c| kept(i, c)).count())
                 .sum()
         })
         .collect();

@@ -11,7 +11,7 @@ use rayon::prelude::*;
 use super::relight::{linear_to_srgb8, RelightTextures};
 use crate::error::{Error, Result};
 use crate::io::read_exr;
-use crate::maps::encode::NormalConvention;
+use crate::maps::encode::{srgb_to_linear, NormalConvention};
 use crate::plane::Plane;
 use crate::solve::{PixelStatus, SolveResult};
 
@@ -32,14 +32,6 @@ pub struct FullMaps {
     pub confidence: Option<[Plane; 4]>,
     /// What could not be read, in words (file and cause).
     pub missing: Vec<String>,
-}
-
-fn srgb_to_linear(c: f32) -> f32 {
-    if c <= 0.04045 {
-        c / 12.92
-    } else {
-        ((c + 0.055) / 1.055).powf(2.4)
-    }
 }
 
 /// Reads a 16-bit RGB PNG as three planes of `value(sample)`, one plane per channel, each

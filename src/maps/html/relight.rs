@@ -13,6 +13,7 @@ use image::{Rgb, RgbImage};
 use serde::Serialize;
 
 use crate::error::{Error, Result};
+use crate::maps::encode::{linear_to_srgb, srgb_to_linear};
 
 /// Which BRDF shades the relight.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -80,24 +81,6 @@ pub struct RelightTextures {
 const PI: f32 = std::f32::consts::PI;
 const F0: f32 = 0.04;
 const VELVET_AMPLITUDE: f32 = 4.0;
-
-fn srgb_to_linear(c: f32) -> f32 {
-    if c <= 0.04045 {
-        c / 12.92
-    } else {
-        ((c + 0.055) / 1.055).powf(2.4)
-    }
-}
-
-/// Linear to sRGB transfer (input clamped to [0, 1]).
-pub fn linear_to_srgb(c: f32) -> f32 {
-    let c = c.clamp(0.0, 1.0);
-    if c <= 0.003_130_8 {
-        c * 12.92
-    } else {
-        1.055 * c.powf(1.0 / 2.4) - 0.055
-    }
-}
 
 /// `(linear_to_srgb(v) * 255).round()` as a byte, the same byte for every `v`, from a table
 /// instead of a `powf`: the loupe converts every sample of a 16 MP albedo (48 M of them).
