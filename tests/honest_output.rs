@@ -162,6 +162,45 @@ fn many_pixels_failing_the_model_test_are_reported_with_what_to_try() {
     assert!(warning.contains("fail the model test"), "{warning}");
 }
 
+/// 2x2 binning of RAW frames sums four CFA sites with their own normals; where some face a
+/// light and some face away, no single normal explains the sum. On a noise-free Lambertian
+/// set (no cast shadows, no sheen) that is the only departure from the model, so the
+/// full-resolution solve passes the test everywhere it is tested, and the half-resolution
+/// warning names binning and the full-resolution solve as its remedy.
+#[test]
+fn a_half_resolution_solve_names_binning_when_many_pixels_fail_the_model_test() {
+    let dir = tempfile::tempdir().unwrap();
+    let set = dir.path().join("dng");
+    json(&psscan(&[
+        "synth",
+        "--out",
+        s(&set),
+        "--width",
+        "192",
+        "--height",
+        "128",
+        "--step",
+        "16",
+        "--encoding",
+        "dng",
+        "--noise-free",
+        "--json",
+    ]));
+    let (full, _) = solve(&set, &[]);
+    assert!(failed_share(&full) < 0.05, "{}", failed_share(&full));
+    assert!(full["warnings"].is_null(), "{}", full["warnings"]);
+
+    let (half, text) = solve(&set, &["--resolution", "half"]);
+    assert!(failed_share(&half) > 0.05, "{}", failed_share(&half));
+    let warning = half["warnings"][0].as_str().expect("a warning");
+    assert!(
+        warning.contains("each pixel sums a 2x2 cell of CFA sites"),
+        "{warning}"
+    );
+    assert!(warning.contains("--resolution full"), "{warning}");
+    assert!(text.contains("--resolution full"), "{text}");
+}
+
 #[test]
 fn a_binned_solve_says_its_prediction_covers_noise_only() {
     let set = &sets().lambertian;

@@ -489,6 +489,13 @@ pub struct DecodeInfo {
     pub camera_to_srgb: Option<[[f64; 3]; 3]>,
 }
 
+impl DecodeInfo {
+    /// Whether each pixel is a 2x2 cell of CFA sites binned (RAW frames at half resolution).
+    pub fn binned(&self) -> bool {
+        self.resolution == Resolution::Half && self.cfa_pattern.is_some()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -146,6 +146,7 @@ fn run(
             &solved.result,
             &job.options,
             outputs,
+            solved.decode.binned(),
         );
         report.maps = solved.maps.clone();
         source.describe(&mut report, &solved.window);
