@@ -15,7 +15,6 @@
 
 use std::collections::BTreeSet;
 use std::fs;
-use std::io::Write;
 use std::path::{Component, Path, PathBuf};
 use std::sync::Mutex;
 
@@ -23,6 +22,10 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::error::{Error, Result};
+
+mod atomic;
+
+pub use atomic::{write_atomic, AtomicFile};
 
 /// The ownership record psscan keeps in every folder it writes: the entries it wrote.
 pub const OWNED_FILE: &str = ".psscan-owned.json";
@@ -88,25 +91,6 @@ fn remove_dir_retrying(path: &Path) -> bool {
         std::thread::sleep(std::time::Duration::from_millis(5));
     }
     false
-}
-
-/// Writes `bytes` to `path` through a temporary file in the same folder, flushed to disk and
-/// then renamed over the destination. Readers see either the old file or the whole new one.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = temp_sibling(path);
-    register(&tmp);
-    let result = (|| -> std::io::Result<()> {
-        let mut file = fs::File::create(&tmp)?;
-        file.write_all(bytes)?;
-        file.sync_all()?;
-        fs::rename(&tmp, path)
-    })();
-    unregister(&tmp);
-    if let Err(source) = result {
-        let _ = fs::remove_file(&tmp);
-        return Err(Error::io(path, source));
-    }
-    Ok(())
 }
 
 /// A name beside `path` that no other writer uses: `name.tmp-<pid>-<n>`.

@@ -46,9 +46,25 @@ pub fn encode_png16(
     path: &Path,
     width: usize,
     height: usize,
-    mut rgb: Vec<u16>,
+    rgb: Vec<u16>,
     compression: PngCompression,
 ) -> Result<Vec<u8>> {
+    // Room for the whole file at once: a Vec that grows by doubling copies the file several
+    // times into fresh memory (and the capacity it never touches costs nothing).
+    let mut bytes = Vec::with_capacity(file_bound(width * height * 6 + height));
+    encode_png16_into(&mut bytes, path, width, height, rgb, compression)?;
+    Ok(bytes)
+}
+
+/// [`encode_png16`] streamed into `out` (a file: a 16 MP map's bytes need not sit in memory).
+pub fn encode_png16_into(
+    out: impl std::io::Write,
+    path: &Path,
+    width: usize,
+    height: usize,
+    mut rgb: Vec<u16>,
+    compression: PngCompression,
+) -> Result<()> {
     use rayon::prelude::*;
     if rgb.len() != width * height * 3 {
         return Err(PsError::image(path, "image size does not match its data"));
@@ -63,7 +79,7 @@ pub fn encode_png16(
     if compression == PngCompression::Fast && !compresses(samples, width, height) {
         deflate = png::Compression::NoCompression;
     }
-    png16_stream(samples, width, height, deflate).map_err(|e| PsError::image(path, e))
+    png16_stream(out, samples, width, height, deflate).map_err(|e| PsError::image(path, e))
 }
 
 /// Rows of the sample [`compresses`] encodes: enough to see the image's statistics, a small
@@ -92,25 +108,24 @@ fn compresses(samples: &[u8], width: usize, height: usize) -> bool {
         })
         .copied()
         .collect();
-    match png16_stream(&sample, width, rows, png::Compression::Fast) {
-        Ok(encoded) => (encoded.len() as f64) <= (1.0 - MIN_PNG_SAVING) * (rows * (row + 1)) as f64,
+    let mut encoded = Vec::with_capacity(file_bound(sample.len() + rows));
+    match png16_stream(&mut encoded, &sample, width, rows, png::Compression::Fast) {
+        Ok(()) => (encoded.len() as f64) <= (1.0 - MIN_PNG_SAVING) * (rows * (row + 1)) as f64,
         Err(_) => true,
     }
 }
 
-/// Big-endian 16-bit RGB rows as PNG file bytes, the deflate output streamed into the file's
-/// bytes chunk by chunk (1 MiB IDAT chunks), not into a second whole-image buffer first.
+/// Big-endian 16-bit RGB rows as PNG file bytes written to `out`, the deflate output streamed
+/// chunk by chunk (1 MiB IDAT chunks), never a whole-image buffer.
 fn png16_stream(
+    out: impl std::io::Write,
     samples: &[u8],
     width: usize,
     height: usize,
     deflate: png::Compression,
-) -> std::result::Result<Vec<u8>, png::EncodingError> {
+) -> std::result::Result<(), png::EncodingError> {
     use std::io::Write;
-    // Room for the whole file at once: a Vec that grows by doubling copies the file several
-    // times into fresh memory (and the capacity it never touches costs nothing).
-    let mut bytes = Vec::with_capacity(file_bound(width * height * 6 + height));
-    let mut encoder = png::Encoder::new(&mut bytes, width as u32, height as u32);
+    let mut encoder = png::Encoder::new(out, width as u32, height as u32);
     encoder.set_color(png::ColorType::Rgb);
     encoder.set_depth(png::BitDepth::Sixteen);
     encoder.set_compression(deflate);
@@ -121,16 +136,100 @@ fn png16_stream(
     });
     let mut writer = encoder.write_header()?;
     if let png::Compression::NoCompression = deflate {
-        // Stored blocks: the png crate's own stored writer (the streaming one runs zlib at
-        // level 0, several times slower), which builds the data in a buffer of its own.
-        writer.write_image_data(samples)?;
+        // Stored blocks written here: the png crate's stored writer builds the whole stream
+        // in a buffer of its own first (96 MB at 16 MP), and its streaming one runs zlib at
+        // level 0, several times slower.
+        let mut idat = StoredIdat::new(&mut writer, height * (width * 6 + 1));
+        for row in samples.chunks_exact(width * 6) {
+            idat.write(&[0])?; // filter type None
+            idat.write(row)?;
+        }
+        idat.finish()?;
     } else {
         let mut stream = writer.stream_writer_with_size(1 << 20)?;
         stream.write_all(samples)?;
         stream.finish()?;
     }
     writer.finish()?;
-    Ok(bytes)
+    Ok(())
+}
+
+/// A zlib stream of stored (uncompressed) deflate blocks (RFC 1950, RFC 1951 section 3.2.4)
+/// of a known length, written as PNG IDAT chunks of about a MiB.
+struct StoredIdat<'a, W: std::io::Write> {
+    png: &'a mut png::Writer<W>,
+    /// Bytes of the stream not yet in a chunk.
+    chunk: Vec<u8>,
+    /// Data of the block being filled.
+    block: Vec<u8>,
+    adler: simd_adler32::Adler32,
+    /// Data bytes still to come, the block's included.
+    left: usize,
+}
+
+impl<'a, W: std::io::Write> StoredIdat<'a, W> {
+    /// A stored block holds at most this many bytes (its length is 16 bits).
+    const BLOCK: usize = 65_535;
+    /// IDAT chunk size the stream is cut into.
+    const CHUNK: usize = 1 << 20;
+
+    fn new(png: &'a mut png::Writer<W>, length: usize) -> Self {
+        let mut chunk = Vec::with_capacity(Self::CHUNK + Self::BLOCK + 16);
+        // CMF: deflate, 32 KiB window; FLG: no dictionary, fastest level, check bits so that
+        // CMF * 256 + FLG is a multiple of 31 (0x7801 = 30721 = 31 * 991).
+        chunk.extend_from_slice(&[0x78, 0x01]);
+        StoredIdat {
+            png,
+            chunk,
+            block: Vec::with_capacity(Self::BLOCK),
+            adler: simd_adler32::Adler32::new(),
+            left: length,
+        }
+    }
+
+    fn write(&mut self, mut data: &[u8]) -> std::result::Result<(), png::EncodingError> {
+        while !data.is_empty() {
+            let take = (Self::BLOCK - self.block.len()).min(data.len());
+            self.block.extend_from_slice(&data[..take]);
+            data = &data[take..];
+            if self.block.len() == Self::BLOCK {
+                self.end_block()?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Moves the filled block into the stream: header (final flag, type 00), length, its
+    /// one's complement, data; the stream's Adler-32 after the last.
+    fn end_block(&mut self) -> std::result::Result<(), png::EncodingError> {
+        self.left -= self.block.len();
+        let last = self.left == 0;
+        let len = self.block.len() as u16;
+        self.chunk.push(u8::from(last));
+        self.chunk.extend_from_slice(&len.to_le_bytes());
+        self.chunk.extend_from_slice(&(!len).to_le_bytes());
+        self.chunk.extend_from_slice(&self.block);
+        self.adler.write(&self.block);
+        self.block.clear();
+        if last {
+            self.chunk
+                .extend_from_slice(&self.adler.finish().to_be_bytes());
+        }
+        if last || self.chunk.len() >= Self::CHUNK {
+            self.png.write_chunk(png::chunk::IDAT, &self.chunk)?;
+            self.chunk.clear();
+        }
+        Ok(())
+    }
+
+    /// Ends the stream; every byte of the length given to [`StoredIdat::new`] was written.
+    fn finish(mut self) -> std::result::Result<(), png::EncodingError> {
+        debug_assert_eq!(self.block.len(), self.left, "the stream's stated length");
+        if self.left > 0 {
+            self.end_block()?;
+        }
+        Ok(())
+    }
 }
 
 /// Writes an image as a PNG (fast deflate, adaptive filter), atomically.
@@ -179,6 +278,27 @@ pub fn encode_exr_planes(
     channels: Vec<(&str, Plane)>,
     compression: ExrCompression,
 ) -> Result<Vec<u8>> {
+    let (size, samples) = planes_as_samples(path, channels)?;
+    encode_exr_samples(path, size, samples, compression)
+}
+
+/// [`encode_exr_planes`] streamed into `out` (see [`encode_exr_samples_into`]).
+pub fn encode_exr_planes_into(
+    out: impl std::io::Write + std::io::Seek,
+    path: &Path,
+    channels: Vec<(&str, Plane)>,
+    compression: ExrCompression,
+) -> Result<()> {
+    let (size, samples) = planes_as_samples(path, channels)?;
+    encode_exr_samples_into(out, path, size, samples, compression)
+}
+
+/// Planes of one size as single-precision channels, and that size.
+#[allow(clippy::type_complexity)]
+fn planes_as_samples<'a>(
+    path: &Path,
+    channels: Vec<(&'a str, Plane)>,
+) -> Result<((usize, usize), Vec<(&'a str, ExrSamples)>)> {
     let Some((_, first)) = channels.first() else {
         return Err(PsError::image(path, "no channels to write"));
     };
@@ -193,7 +313,7 @@ pub fn encode_exr_planes(
         .into_iter()
         .map(|(name, plane)| (name, ExrSamples::F32(plane.data)))
         .collect();
-    encode_exr_samples(path, (width, height), samples, compression)
+    Ok(((width, height), samples))
 }
 
 /// A channel's samples as an EXR stores them.
@@ -237,20 +357,34 @@ impl ExrSamples {
 /// only names the file in errors.
 pub fn encode_exr_samples(
     path: &Path,
-    (width, height): (usize, usize),
+    size: (usize, usize),
     channels: Vec<(&str, ExrSamples)>,
     compression: ExrCompression,
 ) -> Result<Vec<u8>> {
+    let bytes: usize = channels
+        .iter()
+        .map(|(_, s)| s.len() * s.bytes_per_sample())
+        .sum();
+    let mut cursor = Cursor::new(Vec::with_capacity(file_bound(bytes)));
+    encode_exr_samples_into(&mut cursor, path, size, channels, compression)?;
+    Ok(cursor.into_inner())
+}
+
+/// [`encode_exr_samples`] streamed into `out` (buffered by the caller; a file, so that a
+/// 16 MP map's bytes need not sit in memory).
+pub fn encode_exr_samples_into(
+    out: impl std::io::Write + std::io::Seek,
+    path: &Path,
+    (width, height): (usize, usize),
+    channels: Vec<(&str, ExrSamples)>,
+    compression: ExrCompression,
+) -> Result<()> {
     if channels.is_empty() {
         return Err(PsError::image(path, "no channels to write"));
     }
     if channels.iter().any(|(_, s)| s.len() != width * height) {
         return Err(PsError::image(path, "channels of different sizes"));
     }
-    let bytes: usize = channels
-        .iter()
-        .map(|(_, s)| s.len() * s.bytes_per_sample())
-        .sum();
     let list = channels
         .into_iter()
         .map(|(name, samples)| {
@@ -271,12 +405,10 @@ pub fn encode_exr_samples(
         encoding,
         AnyChannels::sort(list),
     );
-    let mut cursor = Cursor::new(Vec::with_capacity(file_bound(bytes)));
     Image::from_layer(layer)
         .write()
-        .to_buffered(&mut cursor)
-        .map_err(|e| PsError::image(path, e))?;
-    Ok(cursor.into_inner())
+        .to_unbuffered(out)
+        .map_err(|e| PsError::image(path, e))
 }
 
 /// A capacity that holds an encoded file of `raw` bytes of samples: lossless encoders can
@@ -350,6 +482,48 @@ mod tests {
                 }
             })
             .collect()
+    }
+
+    /// Stored PNG streams whose length is one block exactly, two blocks exactly, a few
+    /// bytes, and over a MiB (several IDAT chunks): every one decodes to its samples, and its
+    /// zlib stream ends in the Adler-32 of the filtered rows (computed here by the definition;
+    /// the png crate's decoder does not check it).
+    #[test]
+    fn stored_png_streams_decode_at_block_and_chunk_boundaries() {
+        // 14 pixels of 6 bytes and a filter byte: 85 bytes a row, 771 rows = 65535.
+        for (w, h) in [(14, 771), (14, 1542), (1, 1), (300, 700)] {
+            let rgb = rgb16(w, h, true);
+            let samples: Vec<u8> = rgb.iter().flat_map(|v| v.to_be_bytes()).collect();
+            let mut bytes = Vec::new();
+            png16_stream(&mut bytes, &samples, w, h, png::Compression::NoCompression).unwrap();
+            let back = image::load_from_memory(&bytes).unwrap().into_rgb16();
+            assert_eq!(back.into_raw(), rgb, "{w} x {h}");
+
+            let mut idat = Vec::new();
+            let mut at = 8;
+            while at < bytes.len() {
+                let len = u32::from_be_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+                if &bytes[at + 4..at + 8] == b"IDAT" {
+                    idat.extend_from_slice(&bytes[at + 8..at + 8 + len]);
+                }
+                at += 12 + len;
+            }
+            let (mut a, mut b) = (1u32, 0u32);
+            for row in samples.chunks(w * 6) {
+                for &byte in std::iter::once(&0u8).chain(row) {
+                    a = (a + byte as u32) % 65521;
+                    b = (b + a) % 65521;
+                }
+            }
+            let adler = (b << 16) | a;
+            assert_eq!(idat[idat.len() - 4..], adler.to_be_bytes(), "{w} x {h}");
+            let blocks = (h * (w * 6 + 1)).div_ceil(65_535);
+            assert_eq!(
+                idat.len(),
+                2 + h * (w * 6 + 1) + 5 * blocks + 4,
+                "{w} x {h}"
+            );
+        }
     }
 
     /// A ramp under 11 bits of noise (a map's sensor noise in its low bits): the fast deflate

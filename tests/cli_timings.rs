@@ -84,8 +84,9 @@ fn the_stage_table_adds_up_to_the_total() {
             "demosaic",
             "noise model",
             "solve",
-            "encode normal.png",
+            "write normal.png",
             "write confidence.exr",
+            "sync confidence.exr",
             "report",
             "other",
         ] {

@@ -1,3 +1,5 @@
+use std::io::Write;
+
 use super::*;
 
 #[test]
@@ -165,4 +167,45 @@ fn sha256_of_known_input() {
         sha256_hex(b"abc"),
         "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
     );
+}
+
+#[test]
+fn an_atomic_file_appears_only_when_committed_and_leaves_nothing_when_dropped() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("map.exr");
+    std::fs::write(&path, b"old").unwrap();
+    let entries = || -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    };
+
+    // An encoder that fails half-way: the old file stays, no temporary file is left, and
+    // nothing is left registered for an interrupt to remove.
+    let mut failed = AtomicFile::create(&path).unwrap();
+    failed.writer().write_all(b"half").unwrap();
+    assert_eq!(entries().len(), 2, "{:?}", entries());
+    drop(failed);
+    assert_eq!(entries(), ["map.exr"]);
+    assert_eq!(std::fs::read(&path).unwrap(), b"old");
+    assert!(!staging().iter().any(|p| p.starts_with(dir.path())));
+
+    let mut done = AtomicFile::create(&path).unwrap();
+    done.writer().write_all(b"new bytes").unwrap();
+    assert_eq!(
+        std::fs::read(&path).unwrap(),
+        b"old",
+        "visible before the commit"
+    );
+    done.commit().unwrap();
+    assert_eq!(entries(), ["map.exr"]);
+    assert_eq!(std::fs::read(&path).unwrap(), b"new bytes");
+    assert!(!staging().iter().any(|p| p.starts_with(dir.path())));
+
+    let missing = dir.path().join("no such folder").join("x.png");
+    let err = AtomicFile::create(&missing).err().unwrap().to_string();
+    assert!(err.contains("x.png"), "{err}");
 }

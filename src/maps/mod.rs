@@ -14,7 +14,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::fsutil::create_dir_all;
+use crate::fsutil::{create_dir_all, AtomicFile};
 use crate::io::{ExrCompression, ExrSamples};
 use crate::solve::SolveResult;
 use crate::timing::Busy;
@@ -92,18 +92,19 @@ pub fn write_maps(result: &SolveResult, dir: &Path, options: &MapOptions) -> Res
     write_maps_timed(result, dir, options, &Busy::new(&MAP_STAGES))
 }
 
-/// The stages [`write_maps_timed`] records: each map's encoding and its write to disk.
+/// The stages [`write_maps_timed`] records: each map encoded straight into its file
+/// ("write"), then flushed to disk and renamed into place ("sync").
 pub const MAP_STAGES: [&str; 10] = [
-    "encode normal.png",
     "write normal.png",
-    "encode albedo.png",
+    "sync normal.png",
     "write albedo.png",
-    "encode normal.exr",
+    "sync albedo.png",
     "write normal.exr",
-    "encode albedo.exr",
+    "sync normal.exr",
     "write albedo.exr",
-    "encode confidence.exr",
+    "sync albedo.exr",
     "write confidence.exr",
+    "sync confidence.exr",
 ];
 
 /// One map file to write: its name, and whether it is asked for.
@@ -143,23 +144,24 @@ pub fn write_maps_timed(
     if options.exr {
         files.extend([MapFile::NormalExr, MapFile::AlbedoExr]);
     }
-    // Each encoded file is written (and flushed to disk) on a thread of its own: a rayon
-    // worker waiting for the disk would leave a core idle while other maps still encode.
+    // Each map is encoded straight into its (temporary) file, and flushed to disk on a
+    // thread of its own: a rayon worker waiting for the disk would leave a core idle while
+    // other maps still encode.
     let written = std::thread::scope(|scope| {
         let writers = files
             .par_iter()
             .map(|&file| {
-                let path = dir.join(file.name());
-                let bytes = busy.time(&format!("encode {}", file.name()), || {
-                    encode_map(result, file, &path, options)
+                let mut out = AtomicFile::create(&dir.join(file.name()))?;
+                busy.time(&format!("write {}", file.name()), || {
+                    let path = out.path().to_path_buf();
+                    encode_map_into(out.writer(), result, file, &path, options)
                 })?;
-                let writer = scope.spawn(move || {
-                    busy.time(&format!("write {}", file.name()), || {
-                        crate::fsutil::write_atomic(&path, &bytes)
-                    })?;
+                let syncer = scope.spawn(move || {
+                    let path = out.path().to_path_buf();
+                    busy.time(&format!("sync {}", file.name()), || out.commit())?;
                     Ok((file, path))
                 });
-                Ok(writer)
+                Ok(syncer)
             })
             .collect::<Vec<Result<_>>>();
         // The first failure (of an encode or a write) is returned; the scope joins every
@@ -184,23 +186,26 @@ pub fn write_maps_timed(
     })
 }
 
-/// One map's file bytes.
-fn encode_map(
+/// One map's file bytes, written to `out`.
+fn encode_map_into(
+    out: &mut std::io::BufWriter<std::fs::File>,
     result: &SolveResult,
     file: MapFile,
     path: &Path,
     options: &MapOptions,
-) -> Result<Vec<u8>> {
+) -> Result<()> {
     let (w, h) = (result.width, result.height);
     match file {
-        MapFile::NormalPng => crate::io::encode_png16(
+        MapFile::NormalPng => crate::io::encode_png16_into(
+            out,
             path,
             w,
             h,
             encode::normal_rgb16(result, options.normal_convention),
             options.png_compression,
         ),
-        MapFile::AlbedoPng => crate::io::encode_png16(
+        MapFile::AlbedoPng => crate::io::encode_png16_into(
+            out,
             path,
             w,
             h,
@@ -210,12 +215,12 @@ fn encode_map(
         MapFile::NormalExr => {
             let [nx, ny, nz] = encode::normal_planes(result, options.normal_convention);
             let channels = vec![("R", nx), ("G", ny), ("B", nz)];
-            crate::io::encode_exr_planes(path, channels, ExrCompression::None)
+            crate::io::encode_exr_planes_into(out, path, channels, ExrCompression::None)
         }
         MapFile::AlbedoExr => {
             let [r, g, b] = result.albedo.clone();
             let channels = vec![("R", r), ("G", g), ("B", b)];
-            crate::io::encode_exr_planes(path, channels, ExrCompression::None)
+            crate::io::encode_exr_planes_into(out, path, channels, ExrCompression::None)
         }
         MapFile::Confidence => {
             let channels = vec![
@@ -241,7 +246,7 @@ fn encode_map(
             // The class and count channels in half precision (whole numbers, exact), all
             // stored as they are: 16 MP takes 290 MB, where RLE over six f32 channels took
             // 265 MB and most of a second to encode.
-            crate::io::encode_exr_samples(path, (w, h), channels, ExrCompression::None)
+            crate::io::encode_exr_samples_into(out, path, (w, h), channels, ExrCompression::None)
         }
     }
 }
