@@ -2,6 +2,7 @@
 //! encoded (PNG where the page computes with the values, JPEG for the loupe's full-resolution
 //! views) as `data:` URIs.
 
+use std::borrow::Cow;
 use std::path::Path;
 
 use image::{ImageEncoder, RgbImage};
@@ -19,17 +20,19 @@ use crate::solve::{PixelStatus, SolveResult};
 pub const DISPLAY_MAX_SIDE: usize = 1024;
 
 /// A full-resolution map read back from the solve folder.
-pub struct FullMaps {
+pub struct FullMaps<'a> {
     /// Width of the full-resolution maps in pixels.
     pub width: usize,
     /// Height of the full-resolution maps in pixels.
     pub height: usize,
     /// Linear RGB albedo (display primaries, as `albedo.png` holds them).
     pub albedo: Option<[Plane; 3]>,
-    /// World-frame normals, OpenGL convention; `None` where the map is missing.
-    pub normal: Option<[Plane; 3]>,
-    /// `status`, `fit`, `predicted_error_deg`, `residual` of `confidence.exr`.
-    pub confidence: Option<[Plane; 4]>,
+    /// World-frame normals, OpenGL convention; `None` where the map is missing. Borrowed from
+    /// a solve still in memory ([`FullMaps::from_result`]).
+    pub normal: Option<[Cow<'a, Plane>; 3]>,
+    /// `status`, `fit`, `predicted_error_deg`, `residual` of `confidence.exr`; the last two
+    /// borrowed from a solve still in memory.
+    pub confidence: Option<[Cow<'a, Plane>; 4]>,
     /// What could not be read, in words (file and cause).
     pub missing: Vec<String>,
 }
@@ -127,9 +130,9 @@ fn keep<T>(read: Result<T>, missing: &mut Vec<String>) -> Option<T> {
     read.map_err(|e| missing.push(e.to_string())).ok()
 }
 
-impl FullMaps {
+impl<'a> FullMaps<'a> {
     /// Reads what the solve folder holds; a missing or unreadable map is noted, not fatal.
-    pub fn read(dir: &Path, convention: NormalConvention) -> FullMaps {
+    pub fn read(dir: &Path, convention: NormalConvention) -> FullMaps<'static> {
         let mut missing = Vec::new();
         // Three files, read side by side.
         let (albedo, (normal, confidence)) = rayon::join(
@@ -137,15 +140,15 @@ impl FullMaps {
             || rayon::join(|| read_normal(dir, convention), || read_confidence(dir)),
         );
         let albedo = keep(albedo, &mut missing);
-        let normal = keep(normal, &mut missing);
-        let confidence = keep(confidence, &mut missing);
+        let normal = keep(normal, &mut missing).map(|n| n.map(Cow::Owned));
+        let confidence = keep(confidence, &mut missing).map(|c| c.map(Cow::Owned));
         let sizes: Vec<(usize, usize)> = [
             albedo.as_ref().map(|p| &p[0]),
-            normal.as_ref().map(|p| &p[0]),
+            normal.as_ref().map(|p| &*p[0]),
         ]
         .into_iter()
         .flatten()
-        .chain(confidence.as_ref().map(|c| &c[0]))
+        .chain(confidence.as_ref().map(|c| &*c[0]))
         .map(|p| (p.width, p.height))
         .collect();
         let (width, height) = sizes.first().copied().unwrap_or((0, 0));
@@ -171,8 +174,13 @@ impl FullMaps {
     /// files the solve writes (the albedo through `display_matrix` and clamped to [0, 1] as
     /// `albedo.png` holds it, black where unsolved; the normals in the OpenGL convention; the
     /// confidence planes as `confidence.exr` holds them), without the PNGs' 16-bit rounding
-    /// and without reading and decoding half a gigabyte of files at 16 MP.
-    pub fn from_result(result: &SolveResult, display_matrix: Option<&[[f64; 3]; 3]>) -> FullMaps {
+    /// and without reading and decoding half a gigabyte of files at 16 MP. The normals and the
+    /// confidence map's float planes are the solve's own, borrowed: copies were 320 MB at
+    /// 16 MP, all of it fresh memory.
+    pub fn from_result(
+        result: &'a SolveResult,
+        display_matrix: Option<&[[f64; 3]; 3]>,
+    ) -> FullMaps<'a> {
         let (w, h) = (result.width, result.height);
         // As `albedo.png` holds it: display primaries, clamped, black where unsolved.
         let mut albedo = match display_matrix {
@@ -193,20 +201,16 @@ impl FullMaps {
                 });
         }
         let to_plane = |values: Vec<f32>| Plane::from_vec(w, h, values).expect("sized");
-        let ((status, fit), normal) = rayon::join(
-            || {
-                rayon::join(
-                    || to_plane(result.status.par_iter().map(|&s| s as u8 as f32).collect()),
-                    || to_plane(result.fit.par_iter().map(|&f| f as u8 as f32).collect()),
-                )
-            },
-            || result.normal.clone(),
+        let (status, fit) = rayon::join(
+            || to_plane(result.status.par_iter().map(|&s| s as u8 as f32).collect()),
+            || to_plane(result.fit.par_iter().map(|&f| f as u8 as f32).collect()),
         );
+        let normal = result.normal.each_ref().map(Cow::Borrowed);
         let confidence = [
-            status,
-            fit,
-            result.predicted_error_deg.clone(),
-            result.residual.clone(),
+            Cow::Owned(status),
+            Cow::Owned(fit),
+            Cow::Borrowed(&result.predicted_error_deg),
+            Cow::Borrowed(&result.residual),
         ];
         FullMaps {
             width: w,
@@ -449,12 +453,13 @@ pub fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<Rgb
         || {
             maps.albedo
                 .as_ref()
-                .map(|a| sampled_view(a, maps.width, (w, h, step), linear_to_srgb8))
+                .map(|a| sampled_view(a.each_ref(), maps.width, (w, h, step), linear_to_srgb8))
         },
         || {
-            maps.normal
-                .as_ref()
-                .map(|n| sampled_view(n, maps.width, (w, h, step), |v| byte(v * 0.5 + 0.5)))
+            maps.normal.as_ref().map(|n| {
+                let planes = n.each_ref().map(|p| &**p);
+                sampled_view(planes, maps.width, (w, h, step), |v| byte(v * 0.5 + 0.5))
+            })
         },
     )
 }
@@ -463,7 +468,7 @@ pub fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<Rgb
 /// `to_byte`. Generic in `to_byte` so that the conversion inlines: at 16 MP through a `dyn Fn`
 /// it was a call per value, 48 million of them.
 fn sampled_view(
-    planes: &[Plane; 3],
+    planes: [&Plane; 3],
     width: usize,
     (w, h, step): (usize, usize, usize),
     to_byte: impl Fn(f32) -> u8 + Sync,

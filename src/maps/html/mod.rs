@@ -274,7 +274,7 @@ fn class_parts(maps: &FullMaps, r: &Reduction) -> String {
         &legend_classes(&STATUS_CLASSES, &class_counts(&conf[0], maps, false, 6)),
     );
     let fit_img = {
-        let mut fit_or_none = conf[1].clone();
+        let mut fit_or_none = conf[1].clone().into_owned();
         for (i, v) in fit_or_none.data.iter_mut().enumerate() {
             if !maps.solved(i) {
                 *v = 255.0;

@@ -54,12 +54,20 @@ fn maps_from_memory_equal_the_maps_read_back_from_the_files() {
     let memory = FullMaps::from_result(&result, Some(&matrix));
     assert!(read.missing.is_empty(), "{:?}", read.missing);
     assert_eq!((memory.width, memory.height), (read.width, read.height));
-    let max_diff = |a: &[crate::plane::Plane], b: &[crate::plane::Plane]| {
+    // Borrowed or owned planes alike.
+    fn max_diff<A, B>(a: &[A], b: &[B]) -> f32
+    where
+        A: std::borrow::Borrow<crate::plane::Plane>,
+        B: std::borrow::Borrow<crate::plane::Plane>,
+    {
         a.iter()
             .zip(b)
-            .flat_map(|(p, q)| p.data.iter().zip(&q.data).map(|(x, y)| (x - y).abs()))
+            .flat_map(|(p, q)| {
+                let (p, q) = (p.borrow(), q.borrow());
+                p.data.iter().zip(&q.data).map(|(x, y)| (x - y).abs())
+            })
             .fold(0f32, f32::max)
-    };
+    }
     // Normals: half a 16-bit step of [-1, 1]. Albedo: half a 16-bit step of sRGB, which in
     // linear terms is largest at 1 (slope of the sRGB curve's inverse there: about 2.4).
     let normal = max_diff(
