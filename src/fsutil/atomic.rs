@@ -11,20 +11,12 @@ use crate::error::{Error, Result};
 /// Writes `bytes` to `path` through a temporary file in the same folder, flushed to disk and
 /// then renamed over the destination. Readers see either the old file or the whole new one.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = temp_sibling(path);
-    register(&tmp);
-    let result = (|| -> std::io::Result<()> {
-        let mut file = fs::File::create(&tmp)?;
-        file.write_all(bytes)?;
-        file.sync_all()?;
-        fs::rename(&tmp, path)
-    })();
-    unregister(&tmp);
-    if let Err(source) = result {
-        let _ = fs::remove_file(&tmp);
-        return Err(Error::io(path, source));
-    }
-    Ok(())
+    let mut file = AtomicFile::create(path)?;
+    // Dropped uncommitted on a failed write: the temporary file is removed.
+    file.writer()
+        .write_all(bytes)
+        .map_err(|e| Error::io(path, e))?;
+    file.commit()
 }
 
 /// A file written in place of `path` the way [`write_atomic`] writes one, for an encoder that
@@ -64,11 +56,6 @@ impl AtomicFile {
     /// offset table).
     pub fn writer(&mut self) -> &mut std::io::BufWriter<fs::File> {
         self.file.as_mut().expect("a file not yet committed")
-    }
-
-    /// The file's final path.
-    pub fn path(&self) -> &Path {
-        &self.path
     }
 
     /// Flushes what was written to disk and renames the file over its final path.

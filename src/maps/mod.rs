@@ -151,13 +151,12 @@ pub fn write_maps_timed(
         let writers = files
             .par_iter()
             .map(|&file| {
-                let mut out = AtomicFile::create(&dir.join(file.name()))?;
+                let path = dir.join(file.name());
+                let mut out = AtomicFile::create(&path)?;
                 busy.time(&format!("write {}", file.name()), || {
-                    let path = out.path().to_path_buf();
                     encode_map_into(out.writer(), result, file, &path, options)
                 })?;
                 let syncer = scope.spawn(move || {
-                    let path = out.path().to_path_buf();
                     busy.time(&format!("sync {}", file.name()), || out.commit())?;
                     Ok((file, path))
                 });
