@@ -56,6 +56,9 @@ pub struct Context<'a> {
     /// `s_ck`: exposure over the LED's colour scale, per light and channel.
     scale: Vec<[f64; 3]>,
     dark_threshold: f64,
+    /// Where the channels share one CFA sample: its pattern and the sample's own dark
+    /// threshold, tested instead of `dark_threshold` (`NoiseModel::dark_sample_threshold`).
+    dark_sample: Option<([[u8; 2]; 2], f64)>,
     max_condition: f64,
     normal_only: bool,
     /// The outputs hold a previous solve's values (`solve_reusing`): fast-path pixels must
@@ -85,11 +88,12 @@ impl<'a> Context<'a> {
             scale: (0..illumination.len())
                 .map(|k| illumination.rgb_scale(k).map(|s| inv_exposure / s))
                 .collect(),
-            dark_threshold: options.dark_threshold_sigma
-                * input
-                    .noise
-                    .luminance_floor_variance(&LUMINANCE_WEIGHTS)
-                    .sqrt(),
+            dark_threshold: input
+                .noise
+                .dark_luminance_threshold(&LUMINANCE_WEIGHTS, options.dark_threshold_sigma),
+            dark_sample: input
+                .noise
+                .dark_sample_threshold(options.dark_threshold_sigma),
             max_condition: options.max_condition,
             normal_only: options.normal_only,
             reused_outputs: false,
@@ -402,6 +406,11 @@ fn solve_chunk<T: Real, const FMA: bool>(
     let mut lum_sq = [zero; LANES];
     let mut dropped = [zero; LANES];
     let mut noise = ctx.weighing.map(|w| NoiseSums::<T>::new(w, (x, y)));
+    // The lanes' own CFA channel and its dark threshold, where the channels share a sample.
+    let dark_sample = ctx.dark_sample.map(|(pattern, threshold)| {
+        let own: [usize; LANES] = std::array::from_fn(|l| pattern[y % 2][(x + l) % 2] as usize);
+        (own, T::of(threshold))
+    });
     for (k, frame) in ctx.frames.lights.iter().enumerate() {
         let [r, g, bl] = load_rgb::<T>(frame, i0, (x, y));
         const NONE_SATURATED: [bool; LANES] = [false; LANES];
@@ -422,9 +431,13 @@ fn solve_chunk<T: Real, const FMA: bool>(
         let mut one = [zero; LANES];
         for l in 0..LANES {
             let lum = madd::<T, FMA>(wt[0], r[l], madd::<T, FMA>(wt[1], g[l], wt[2] * bl[l]));
-            let keep = !sat[l] && lum > threshold && lum <= max;
-            let m = if keep { inv_falloff[l] } else { zero };
             let rgb = [r[l], g[l], bl[l]];
+            let bright = match &dark_sample {
+                Some((own, sample_threshold)) => rgb[own[l]] > *sample_threshold,
+                None => lum > threshold,
+            };
+            let keep = !sat[l] && bright && lum <= max;
+            let m = if keep { inv_falloff[l] } else { zero };
             for c in 0..3 {
                 let value = if keep { rgb[c] } else { zero };
                 v[c][l] = value * (s[c] * m);

@@ -103,6 +103,9 @@ pub struct Kernel<'a> {
     noise: NoiseModel,
     inv_exposure: f64,
     dark_threshold: f64,
+    /// Where the channels share one CFA sample: its pattern and the sample's own threshold,
+    /// tested instead of `dark_threshold` (`NoiseModel::dark_sample_threshold`).
+    dark_sample: Option<([[u8; 2]; 2], f64)>,
     options: &'a SolveOptions,
     chi_square: ChiSquare,
     /// Adaptive's second pass on a scene that shows sheen: fit the sheen model everywhere.
@@ -141,11 +144,12 @@ impl<'a> Kernel<'a> {
             illumination,
             noise: input.noise,
             inv_exposure: 1.0 / input.exposure,
-            dark_threshold: options.dark_threshold_sigma
-                * input
-                    .noise
-                    .luminance_floor_variance(&LUMINANCE_WEIGHTS)
-                    .sqrt(),
+            dark_threshold: input
+                .noise
+                .dark_luminance_threshold(&LUMINANCE_WEIGHTS, options.dark_threshold_sigma),
+            dark_sample: input
+                .noise
+                .dark_sample_threshold(options.dark_threshold_sigma),
             options,
             chi_square: ChiSquare::new(
                 options.robust.significance_sigma,
@@ -250,8 +254,14 @@ impl<'a> Kernel<'a> {
                 dropped.saturated += 1;
                 continue;
             }
-            let raw_lum: f64 = (0..3).map(|c| LUMINANCE_WEIGHTS[c] * raw[c]).sum();
-            if raw_lum <= self.dark_threshold {
+            let dark = match self.dark_sample {
+                Some((pattern, threshold)) => raw[pattern[y % 2][x % 2] as usize] <= threshold,
+                None => {
+                    let raw_lum: f64 = (0..3).map(|c| LUMINANCE_WEIGHTS[c] * raw[c]).sum();
+                    raw_lum <= self.dark_threshold
+                }
+            };
+            if dark {
                 dropped.dark += 1;
                 continue;
             }

@@ -4,8 +4,9 @@
 //! solves. Pure math on planes: no file I/O, no printing.
 //!
 //! A measurement is left out of a pixel's fit when it is not finite, saturated, or dark (at or
-//! below `dark_threshold_sigma` times the sensor's noise floor: a light in attached or cast
-//! shadow reads zero whatever the normal, so it would only bias the fit). Pixels left with
+//! below `dark_threshold_sigma` times the sensor's noise floor, of the luminance or, where the
+//! channels share one CFA sample, of that sample: a light in attached or cast shadow reads zero
+//! whatever the normal, so it would only bias the fit). Pixels left with
 //! fewer than three lights, or with lights too close to coplanar, are flagged, never NaN.
 
 // The chain, each link importing only those above it: measurements and fits, the chi-square

@@ -445,3 +445,101 @@ fn exposure_scales_albedo_only() {
     let cmp = eval::compare(&result, &scene.truth.normal, &scene.truth.albedo);
     assert!(cmp.albedo_rel_error.max < 1e-4 && cmp.normal_error_deg.max < 0.01);
 }
+
+/// A full-resolution RAW pixel's light is dark when its own CFA sample is within
+/// `dark_threshold_sigma` (3) deviations of that sample's noise floor, on every kernel. Its
+/// luminance is the sample times the pixel's colour factor: at a green site of a red
+/// material (R : G : B = 0.42 : 0.05 : 0.05) about 2.6, and tested as three independent
+/// channels' luminance (floor deviation 0.75 of one channel's) the bar sat at 0.88 deviations
+/// of the sample, so a light in attached shadow reading 1.5 deviations of noise was used.
+#[test]
+fn a_raw_pixels_dark_test_is_on_its_own_sample() {
+    use crate::plane::{CfaColour, Plane};
+    let rig = Rig::default_rig();
+    let (w, h) = (32, 4);
+    let pattern = [[0u8, 1], [1, 2]];
+    let red = [0.42f32, 0.05, 0.05];
+    let mut ratios = RgbPlanes::new(w, h);
+    ratios.par_rows_mut(|y, rows| {
+        for x in 0..w {
+            let own = pattern[y % 2][x % 2] as usize;
+            for c in 0..3 {
+                rows[c][x] = red[c] / red[own];
+            }
+        }
+    });
+    let ratios = std::sync::Arc::new(ratios);
+    let base = crate::bench::bench_noise(&rig);
+    let sigma = base.floor.sqrt() as f32;
+    let green_sites: Vec<usize> = (0..w * h)
+        .filter(|&i| pattern[(i / w) % 2][(i % w) % 2] == 1)
+        .collect();
+    // Light 0 reads `dark` (noise in attached shadow); the other nine are well lit.
+    let frames_with = |dark: f32| Frames {
+        width: w,
+        height: h,
+        window: SensorWindow::centred(
+            rig.camera.width as usize,
+            rig.camera.height as usize,
+            w,
+            h,
+            1.0,
+        ),
+        lights: (0..rig.leds.len())
+            .map(|k| {
+                let sample = Plane::from_vec(
+                    w,
+                    h,
+                    (0..w * h)
+                        .map(|i| {
+                            let own = pattern[(i / w) % 2][(i % w) % 2] as usize;
+                            if k == 0 {
+                                dark
+                            } else {
+                                red[own] * (0.5 + 0.04 * k as f32)
+                            }
+                        })
+                        .collect(),
+                )
+                .unwrap();
+                LightFrame::from_cfa(
+                    sample,
+                    None,
+                    CfaColour {
+                        pattern,
+                        ratios: std::sync::Arc::clone(&ratios),
+                        colour: [1.0; 3],
+                    },
+                )
+            })
+            .collect(),
+    };
+    let shared = NoiseModel {
+        shared_cfa_sample: Some(pattern),
+        ..base
+    };
+    let kernels = [
+        SolveOptions::exact(Estimator::LeastSquares),
+        SolveOptions::exact(Estimator::LeastSquares).with_default_kernel(),
+    ];
+    for options in &kernels {
+        for (dark, used) in [(1.5 * sigma, 9), (4.0 * sigma, 10)] {
+            let result = solve_with(&frames_with(dark), &rig, shared, options);
+            for &i in &green_sites {
+                assert_eq!(
+                    result.lights_used[i],
+                    used,
+                    "{:?}: light 0 at {} deviations, pixel {i}",
+                    options.kernel,
+                    dark / sigma
+                );
+            }
+        }
+        // The same values as independent channels (no shared sample): the luminance,
+        // 2.6 x 1.5 = 3.9 deviations of the sample against a bar of 3 x 0.75, is bright.
+        let result = solve_with(&frames_with(1.5 * sigma), &rig, base, options);
+        for &i in &green_sites {
+            assert_eq!(result.lights_used[i], 10, "{:?}: pixel {i}", options.kernel);
+        }
+    }
+}
