@@ -33,6 +33,7 @@ use super::lanes::{
 use super::lights::Illumination;
 use super::noise_sums::{LightLanes, NoiseSums, Weighing};
 use super::options::SolveOptions;
+use super::predict::DarkTest;
 use super::tiles::{self, exact_coefficients, Source, TileGrid};
 use super::{PixelFit, PixelStatus, SolveInput, SolveResult, LUMINANCE_WEIGHTS};
 use crate::plane::Frames;
@@ -55,10 +56,7 @@ pub struct Context<'a> {
     mask: Option<&'a crate::plane::Mask>,
     /// `s_ck`: exposure over the LED's colour scale, per light and channel.
     scale: Vec<[f64; 3]>,
-    dark_threshold: f64,
-    /// Where the channels share one CFA sample: its pattern and the sample's own dark
-    /// threshold, tested instead of `dark_threshold` (`NoiseModel::dark_sample_threshold`).
-    dark_sample: Option<([[u8; 2]; 2], f64)>,
+    dark: DarkTest,
     max_condition: f64,
     normal_only: bool,
     /// The outputs hold a previous solve's values (`solve_reusing`): fast-path pixels must
@@ -88,12 +86,9 @@ impl<'a> Context<'a> {
             scale: (0..illumination.len())
                 .map(|k| illumination.rgb_scale(k).map(|s| inv_exposure / s))
                 .collect(),
-            dark_threshold: input
+            dark: input
                 .noise
-                .dark_luminance_threshold(&LUMINANCE_WEIGHTS, options.dark_threshold_sigma),
-            dark_sample: input
-                .noise
-                .dark_sample_threshold(options.dark_threshold_sigma),
+                .dark_test(&LUMINANCE_WEIGHTS, options.dark_threshold_sigma),
             max_condition: options.max_condition,
             normal_only: options.normal_only,
             reused_outputs: false,
@@ -391,7 +386,7 @@ fn solve_chunk<T: Real, const FMA: bool>(
         T::of(LUMINANCE_WEIGHTS[1]),
         T::of(LUMINANCE_WEIGHTS[2]),
     ];
-    let threshold = T::of(ctx.dark_threshold);
+    let threshold = T::of(ctx.dark.luminance);
     let max = T::of(f32::MAX as f64);
     let zero = T::zero();
     let k_count = ctx.frames.lights.len();
@@ -406,8 +401,9 @@ fn solve_chunk<T: Real, const FMA: bool>(
     let mut lum_sq = [zero; LANES];
     let mut dropped = [zero; LANES];
     let mut noise = ctx.weighing.map(|w| NoiseSums::<T>::new(w, (x, y)));
-    // The lanes' own CFA channel and its dark threshold, where the channels share a sample.
-    let dark_sample = ctx.dark_sample.map(|(pattern, threshold)| {
+    // `DarkTest::is_dark` in lanes: the lanes' own CFA channel and its threshold, where the
+    // channels share a sample.
+    let dark_sample = ctx.dark.sample.map(|(pattern, threshold)| {
         let own: [usize; LANES] = std::array::from_fn(|l| pattern[y % 2][(x + l) % 2] as usize);
         (own, T::of(threshold))
     });

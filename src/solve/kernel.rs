@@ -8,7 +8,7 @@ use super::chi_square::{ChiSquare, Screened};
 use super::lights::Illumination;
 use super::measure::{fit_normal_equations, fit_svd, Fit, Measurement};
 use super::options::{Estimator, Method, SolveOptions};
-use super::predict::expected_angle_error;
+use super::predict::{expected_angle_error, DarkTest};
 use super::robust;
 use super::{NoiseModel, PixelFit, PixelStatus, SolveInput, SolveResult, LUMINANCE_WEIGHTS};
 use crate::plane::Frames;
@@ -102,10 +102,7 @@ pub struct Kernel<'a> {
     illumination: &'a Illumination<'a>,
     noise: NoiseModel,
     inv_exposure: f64,
-    dark_threshold: f64,
-    /// Where the channels share one CFA sample: its pattern and the sample's own threshold,
-    /// tested instead of `dark_threshold` (`NoiseModel::dark_sample_threshold`).
-    dark_sample: Option<([[u8; 2]; 2], f64)>,
+    dark: DarkTest,
     options: &'a SolveOptions,
     chi_square: ChiSquare,
     /// Adaptive's second pass on a scene that shows sheen: fit the sheen model everywhere.
@@ -144,12 +141,9 @@ impl<'a> Kernel<'a> {
             illumination,
             noise: input.noise,
             inv_exposure: 1.0 / input.exposure,
-            dark_threshold: input
+            dark: input
                 .noise
-                .dark_luminance_threshold(&LUMINANCE_WEIGHTS, options.dark_threshold_sigma),
-            dark_sample: input
-                .noise
-                .dark_sample_threshold(options.dark_threshold_sigma),
+                .dark_test(&LUMINANCE_WEIGHTS, options.dark_threshold_sigma),
             options,
             chi_square: ChiSquare::new(
                 options.robust.significance_sigma,
@@ -254,14 +248,7 @@ impl<'a> Kernel<'a> {
                 dropped.saturated += 1;
                 continue;
             }
-            let dark = match self.dark_sample {
-                Some((pattern, threshold)) => raw[pattern[y % 2][x % 2] as usize] <= threshold,
-                None => {
-                    let raw_lum: f64 = (0..3).map(|c| LUMINANCE_WEIGHTS[c] * raw[c]).sum();
-                    raw_lum <= self.dark_threshold
-                }
-            };
-            if dark {
+            if self.dark.is_dark(&raw, (x, y)) {
                 dropped.dark += 1;
                 continue;
             }

@@ -105,22 +105,15 @@ impl NoiseModel {
             .sum()
     }
 
-    /// The luminance (`weights`) at or below which a pixel's light is dark (attached or cast
-    /// shadow): `sigmas` deviations of the luminance's noise floor. Where the channels share
-    /// one CFA sample, [`NoiseModel::dark_sample_threshold`] is tested instead.
-    pub fn dark_luminance_threshold(&self, weights: &[f64; 3], sigmas: f64) -> f64 {
-        sigmas * self.luminance_floor_variance(weights).sqrt()
-    }
-
-    /// Where the channels share one CFA sample: the threshold to test that sample against,
-    /// `sigmas` deviations of its own floor. Its luminance is the sample times a factor of
-    /// the pixel's colour ratios, and so is the luminance's noise; tested against the floor
-    /// of three independent channels, the bar sat at a fraction of a deviation where the
-    /// missing channels are much brighter than the own one (a green site of a red thread), and
-    /// a light in attached shadow passed it often enough to send 2.2 % of a clean 3 MP
-    /// Lambertian DNG set's pixels to the robust fit (the same scene's dn16 set: 0.09 %).
-    pub fn dark_sample_threshold(&self, sigmas: f64) -> Option<([[u8; 2]; 2], f64)> {
-        (self.shared_cfa_sample).map(|pattern| (pattern, sigmas * self.floor.sqrt()))
+    /// The test that leaves a dark light (attached or cast shadow) out of a pixel's fit, at
+    /// `sigmas` deviations of the noise floor of the luminance (`weights`) or, where the
+    /// channels share one CFA sample, of that sample (see [`DarkTest`]).
+    pub fn dark_test(&self, weights: &[f64; 3], sigmas: f64) -> DarkTest {
+        DarkTest {
+            weights: *weights,
+            luminance: sigmas * self.luminance_floor_variance(weights).sqrt(),
+            sample: (self.shared_cfa_sample).map(|pattern| (pattern, sigmas * self.floor.sqrt())),
+        }
     }
 
     /// Signal-independent variance of the luminance (`weights` per channel).
@@ -128,6 +121,38 @@ impl NoiseModel {
         (0..3)
             .map(|c| weights[c] * weights[c] * self.channel_scale[c] * self.floor)
             .sum()
+    }
+}
+
+/// When a pixel's reading under a light is dark: at or below a number of deviations of the
+/// noise floor ([`NoiseModel::dark_test`]). Where the channels share one CFA sample, the
+/// pixel's luminance is that sample times a factor of its colour ratios, and so is the
+/// luminance's noise, so the sample is tested against its own floor. Tested as three
+/// independent channels' luminance, the bar sat at a fraction of a deviation where the
+/// missing channels are much brighter than the own one (a green site of a red thread), and a
+/// light in attached shadow passed it often enough to send 2.2 % of a clean 3 MP Lambertian
+/// DNG set's pixels to the robust fit (the same scene's dn16 set: 0.09 %).
+#[derive(Clone, Copy, Debug)]
+pub struct DarkTest {
+    /// The luminance's weights per channel.
+    pub weights: [f64; 3],
+    /// The luminance at or below which a light is dark.
+    pub luminance: f64,
+    /// Where the channels share one CFA sample: its pattern (`pattern[y % 2][x % 2]` is the
+    /// sample's channel) and the sample's threshold, tested instead of `luminance`.
+    pub sample: Option<([[u8; 2]; 2], f64)>,
+}
+
+impl DarkTest {
+    /// Whether pixel `(x, y)`'s channel values `raw` under one light are dark.
+    pub fn is_dark(&self, raw: &[f64; 3], (x, y): (usize, usize)) -> bool {
+        match self.sample {
+            Some((pattern, threshold)) => raw[pattern[y % 2][x % 2] as usize] <= threshold,
+            None => {
+                let lum: f64 = (0..3).map(|c| self.weights[c] * raw[c]).sum();
+                lum <= self.luminance
+            }
+        }
     }
 }
 
