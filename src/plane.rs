@@ -220,6 +220,23 @@ impl RgbPlanes {
         self.r.height
     }
 
+    /// Calls `band(y0, [r, g, b])` with the rows from `y0` of each plane to write, `rows` of
+    /// them (fewer in the last band), bands in parallel: for work that carries state from
+    /// one row to the next.
+    pub fn par_bands_mut<F>(&mut self, rows: usize, band: F)
+    where
+        F: Fn(usize, [&mut [f32]; 3]) + Sync + Send,
+    {
+        let n = self.width() * rows.max(1);
+        self.r
+            .data
+            .par_chunks_mut(n.max(1))
+            .zip(self.g.data.par_chunks_mut(n.max(1)))
+            .zip(self.b.data.par_chunks_mut(n.max(1)))
+            .enumerate()
+            .for_each(|(i, ((r, g), b))| band(i * rows.max(1), [r, g, b]));
+    }
+
     /// Calls `row(y, [r, g, b])` with row `y` of each plane to write, rows in parallel.
     pub fn par_rows_mut<F>(&mut self, row: F)
     where

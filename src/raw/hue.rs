@@ -14,6 +14,9 @@
 
 use rayon::prelude::*;
 
+mod rows;
+
+use self::rows::{Candidates, SplitRow};
 use super::chroma::smooth_chroma;
 use super::mosaic::{mirror, GREEN};
 use super::shading::SiteFit;
@@ -42,6 +45,19 @@ pub fn colour_ratios(
     pattern: [[u8; 2]; 2],
     sites: &[SiteFit],
 ) -> RgbPlanes {
+    let mut out = ratios_along(width, height, pattern, sites);
+    smooth_chroma(pattern, &mut out);
+    out
+}
+
+/// Every pixel's ratios before the chroma average: [`ratios_at`] at every pixel, the interior
+/// computed a row at a time (see `rows`).
+fn ratios_along(
+    width: usize,
+    height: usize,
+    pattern: [[u8; 2]; 2],
+    sites: &[SiteFit],
+) -> RgbPlanes {
     let (w, h) = (width, height);
     let mut out = RgbPlanes::new(w, h);
     // Each site's log reflectance, once: the continuity test compares log ratios of sites,
@@ -51,24 +67,71 @@ pub fn colour_ratios(
         let i = mirror(y, h) * w + mirror(x, w);
         (&sites[i], logs[i])
     };
-    out.par_rows_mut(|y, mut planes| {
-        for x in 0..w {
-            let own = pattern[y % 2][x % 2] as usize;
-            let own_site = at(x as isize, y as isize);
-            for (c, plane) in planes.iter_mut().enumerate() {
-                plane[x] = if c == own {
-                    1.0
-                } else if own_site.0.albedo > 0.0 {
-                    let offsets = neighbours_of_channel(pattern, x, y, c as u8);
-                    ratio_along(&at, (x as isize, y as isize), own_site, offsets)
+    // Bands of rows: each keeps the five rows of sites around the one it works on split by
+    // column parity (see `rows`), and moves them on one row at a time.
+    out.par_bands_mut(BAND_ROWS, |y0, planes| {
+        let mut split: [SplitRow; 5] = Default::default();
+        let mut candidates = Candidates::default();
+        let mut next_split = 0;
+        let [r, g, b] = planes;
+        let band = r.chunks_mut(w).zip(g.chunks_mut(w)).zip(b.chunks_mut(w));
+        for (y, ((r, g), b)) in (y0..).zip(band) {
+            let mut planes = [r, g, b];
+            if y < 2 || y + 2 >= h {
+                for x in 0..w {
+                    ratios_at(&at, pattern, (x, y), &mut planes);
+                }
+                continue;
+            }
+            for row in next_split.max(y - 2)..=y + 2 {
+                let i = row * w..(row + 1) * w;
+                split[row % 5].fill(&sites[i.clone()], &logs[i]);
+            }
+            next_split = y + 3;
+            let rows = std::array::from_fn(|k| &split[(y - 2 + k) % 5]);
+            for parity in 0..2 {
+                let own = pattern[y % 2][parity];
+                for c in (0..3).filter(|&c| c != own) {
+                    let plane = &mut *planes[c as usize];
+                    rows::ratios_of_run(pattern, y, parity, c, rows, &mut candidates, plane);
+                }
+            }
+            for x in 0..w {
+                if x < 2 || x + 2 >= w {
+                    ratios_at(&at, pattern, (x, y), &mut planes);
                 } else {
-                    0.0
-                };
+                    planes[pattern[y % 2][x % 2] as usize][x] = 1.0;
+                }
             }
         }
     });
-    smooth_chroma(pattern, &mut out);
     out
+}
+
+/// Rows per band of [`colour_ratios`]'s parallel work: the four rows of sites around a band
+/// are split once more than its own.
+const BAND_ROWS: usize = 32;
+
+/// Pixel `(x, y)`'s ratios into `planes` (its row of each), through `at` (mirrored at the
+/// border): the reference that `rows` computes the interior by.
+fn ratios_at<'a>(
+    at: &impl Fn(isize, isize) -> (&'a SiteFit, f32),
+    pattern: [[u8; 2]; 2],
+    (x, y): (usize, usize),
+    planes: &mut [&mut [f32]; 3],
+) {
+    let own = pattern[y % 2][x % 2] as usize;
+    let own_site = at(x as isize, y as isize);
+    for (c, plane) in planes.iter_mut().enumerate() {
+        plane[x] = if c == own {
+            1.0
+        } else if own_site.0.albedo > 0.0 {
+            let offsets = neighbours_of_channel(pattern, x, y, c as u8);
+            ratio_along(at, (x as isize, y as isize), own_site, offsets)
+        } else {
+            0.0
+        };
+    }
 }
 
 /// Offsets of the nearest sites of `channel` around `(x, y)`: two (left/right or up/down) or
@@ -277,6 +340,62 @@ mod tests {
             (blue_over_green - 1.0).abs() < 0.03,
             "blue / green in the hole: {blue_over_green} (true 1)"
         );
+    }
+
+    /// The row kernel is the per-pixel reference, bit for bit, on sites of every kind (black,
+    /// isolated, continuing, tilted), at every CFA phase and at sizes where the interior is
+    /// empty, one pixel or odd.
+    #[test]
+    fn rows_compute_what_the_reference_does_at_every_pixel() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(3);
+        for (w, h) in [(4, 4), (5, 5), (6, 7), (7, 6), (37, 70), (64, 33)] {
+            for name in ["RGGB", "GBRG", "BGGR", "GRBG"] {
+                let pattern = Mosaic::parse_pattern(name).unwrap();
+                let sites: Vec<SiteFit> = (0..w * h)
+                    .map(|_| {
+                        // Albedos from two materials with noise, some black, normals tilted.
+                        let albedo = match rng.gen_range(0..10) {
+                            0 => 0.0,
+                            1..=4 => 0.05 * rng.gen_range(0.9..1.1f32),
+                            _ => 0.4 * rng.gen_range(0.9..1.1f32),
+                        };
+                        let tilt: f32 = rng.gen_range(0.0..0.7);
+                        let turn: f32 = rng.gen_range(0.0..6.3);
+                        let normal = [tilt.sin() * turn.cos(), tilt.sin() * turn.sin(), tilt.cos()];
+                        SiteFit { albedo, normal }
+                    })
+                    .collect();
+                let got = ratios_along(w, h, pattern, &sites);
+                let logs: Vec<f32> = sites.iter().map(|s| s.albedo.ln()).collect();
+                let at = |x: isize, y: isize| {
+                    let i = mirror(y, h) * w + mirror(x, w);
+                    (&sites[i], logs[i])
+                };
+                for y in 0..h {
+                    let mut want = [vec![0.0f32; w], vec![0.0; w], vec![0.0; w]];
+                    {
+                        let [r, g, b] = &mut want;
+                        let mut planes = [&mut r[..], &mut g[..], &mut b[..]];
+                        for x in 0..w {
+                            ratios_at(&at, pattern, (x, y), &mut planes);
+                        }
+                    }
+                    for (c, want) in want.iter().enumerate() {
+                        let row = &got.channels()[c].data[y * w..(y + 1) * w];
+                        for x in 0..w {
+                            assert_eq!(
+                                row[x].to_bits(),
+                                want[x].to_bits(),
+                                "{name} {w}x{h}, pixel ({x}, {y}), channel {c}: {} vs {}",
+                                row[x],
+                                want[x]
+                            );
+                        }
+                    }
+                }
+            }
+        }
     }
 
     #[test]

@@ -88,6 +88,44 @@ fn count(counts: &mut SampleCounts, value: f32, saturated: bool, floor: Option<f
     }
 }
 
+// The full-resolution pass runs row by row in three loops, each simple enough for the
+// compiler to vectorise (a loop that linearised, counted and subtracted per sample, with
+// the options tested inside, took 6 ns a sample: most of a second per 16 MP set).
+
+/// Row `row` (parity `y2`) linearised into `values`, its saturation flags into `saturated`.
+fn linear_row(sites: &Sites, y2: usize, row: &[u16], values: &mut [f32], saturated: &mut [bool]) {
+    let [(o0, s0), (o1, s1)] = sites.scales[y2];
+    let threshold = sites.threshold;
+    let pairs = row.chunks_exact(2).zip(values.chunks_exact_mut(2));
+    for ((raw, v), sat) in pairs.zip(saturated.chunks_exact_mut(2)) {
+        let (a, b) = (raw[0] as f32, raw[1] as f32);
+        (v[0], v[1]) = ((a - o0) * s0, (b - o1) * s1);
+        (sat[0], sat[1]) = (a >= threshold, b >= threshold);
+    }
+    if row.len() % 2 == 1 {
+        let x = row.len() - 1;
+        (values[x], saturated[x]) = sites.linear(row[x], x, y2);
+    }
+}
+
+/// Adds a linearised row's clipped samples, and those below `floor` where given, to `counts`.
+fn count_row(counts: &mut SampleCounts, values: &[f32], saturated: &[bool], floor: Option<f32>) {
+    counts.clipped += saturated.iter().map(|&s| s as usize).sum::<usize>();
+    if let (Some(below), Some(floor)) = (counts.below_floor.as_mut(), floor) {
+        *below += values.iter().map(|&v| (v < floor) as usize).sum::<usize>();
+    }
+}
+
+/// Subtracts a dark frame's row from a linearised row; a sample saturated in either is.
+fn subtract_row(values: &mut [f32], saturated: &mut [bool], dark: &[f32], dark_saturated: &[bool]) {
+    for (v, d) in values.iter_mut().zip(dark) {
+        *v -= d;
+    }
+    for (s, d) in saturated.iter_mut().zip(dark_saturated) {
+        *s |= d;
+    }
+}
+
 fn empty_counts(pass: &LinearPass, samples: usize) -> SampleCounts {
     SampleCounts {
         samples,
@@ -128,19 +166,11 @@ pub fn linearize(mosaic: &Mosaic, pass: LinearPass) -> Result<(LinearMosaic, Sam
         .enumerate()
         .map(|(y, ((v, sat), row))| {
             let mut counts = empty_counts(&pass, w);
-            let dark = pass.dark.map(|d| {
-                (
-                    &d.values[y * w..(y + 1) * w],
-                    &d.saturated[y * w..(y + 1) * w],
-                )
-            });
-            for x in 0..w {
-                let (value, saturated) = sites.linear(row[x], x, y % 2);
-                count(&mut counts, value, saturated, pass.below_black_floor);
-                (v[x], sat[x]) = match dark {
-                    Some((dv, ds)) => (value - dv[x], saturated | ds[x]),
-                    None => (value, saturated),
-                };
+            linear_row(&sites, y % 2, row, v, sat);
+            count_row(&mut counts, v, sat, pass.below_black_floor);
+            if let Some(d) = pass.dark {
+                let at = y * w..(y + 1) * w;
+                subtract_row(v, sat, &d.values[at.clone()], &d.saturated[at]);
             }
             counts
         })

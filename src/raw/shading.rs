@@ -160,23 +160,22 @@ impl<'a> RowCell<'a> {
         }
     }
 
-    /// The least-squares scaled normal at fraction `t` from every frame's white-balanced
-    /// sample `value(k)` ([`fit_scaled_normal`] with the cell's normal matrix).
-    fn fit_every_frame(&self, t: f64, value: impl Fn(usize) -> f64) -> Option<[f64; 3]> {
+    /// The least-squares scaled normal at fraction `t` from the sums over every frame of
+    /// its white-balanced sample times its shading vector's start and step (see
+    /// [`RowSums`]), and whether the cell's normal matrix determines it
+    /// ([`solve_normal_equations_selected`]; the caller checks the count of frames).
+    #[inline(always)]
+    fn fit_every_frame_unchecked(
+        &self,
+        t: f64,
+        (r0, r1): ([f64; 3], [f64; 3]),
+    ) -> ([f64; 3], bool) {
         // r = sum_k v_k s_k(t) = sum_k v_k start_k + t * sum_k v_k step_k.
-        let (mut r0, mut r1) = ([0.0f64; 3], [0.0f64; 3]);
-        for (k, (start, step)) in self.start.iter().zip(self.step.iter()).enumerate() {
-            let v = value(k);
-            for m in 0..3 {
-                r0[m] += v * start[m];
-                r1[m] += v * step[m];
-            }
-        }
         let r = std::array::from_fn(|m| r0[m] + t * r1[m]);
         let m = std::array::from_fn(|a| {
             std::array::from_fn(|b| self.m[0][a][b] + t * (self.m[1][a][b] + t * self.m[2][a][b]))
         });
-        solve_normal_equations(m, r, self.start.len())
+        solve_normal_equations_selected(m, r)
     }
 
     /// Frame k's shading vector at fraction `t`.
@@ -202,26 +201,34 @@ impl SiteFit {
     /// A site's result from its fitted scaled normal `fit`; without one (not determined), its
     /// white-balanced `sum` over the summed shading `flat` a flat site would have.
     fn from_fit(fit: Option<[f64; 3]>, sum: f32, flat: f64) -> SiteFit {
-        match fit {
-            Some(b) => {
-                let a = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
-                SiteFit {
-                    albedo: a as f32,
-                    normal: if a > 0.0 {
-                        b.map(|v| (v / a) as f32)
-                    } else {
-                        [0.0, 0.0, 1.0]
-                    },
-                }
-            }
-            None => SiteFit {
-                albedo: if flat > 0.0 {
-                    (sum as f64 / flat) as f32
-                } else {
-                    0.0
-                },
-                normal: [0.0, 0.0, 1.0],
+        SiteFit::from_fit_selected((fit.unwrap_or([0.0; 3]), fit.is_some()), sum, flat)
+    }
+
+    /// [`SiteFit::from_fit`] of `b` where `determined`, else of none; both computed and one
+    /// selected, so that a loop over sites vectorises.
+    #[inline(always)]
+    fn from_fit_selected((b, determined): ([f64; 3], bool), sum: f32, flat: f64) -> SiteFit {
+        let a = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
+        let fitted = SiteFit {
+            albedo: a as f32,
+            normal: if a > 0.0 {
+                b.map(|v| (v / a) as f32)
+            } else {
+                [0.0, 0.0, 1.0]
             },
+        };
+        let unfitted = SiteFit {
+            albedo: if flat > 0.0 {
+                (sum as f64 / flat) as f32
+            } else {
+                0.0
+            },
+            normal: [0.0, 0.0, 1.0],
+        };
+        if determined {
+            fitted
+        } else {
+            unfitted
         }
     }
 }
@@ -248,37 +255,195 @@ pub fn site_albedos(
     // all of it, and took its page faults, on one thread: 257 MB at 16 MP, most of a second
     // with the other core idle.
     let mut out: Vec<SiteFit> = (0..w * h).into_par_iter().map(|_| SiteFit::BLACK).collect();
-    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        let nodes = field.row_nodes(y);
-        let cells: Vec<RowCell> = (0..field.nx - 1)
-            .map(|i| RowCell::new(&nodes[i * n..(i + 1) * n], &nodes[(i + 1) * n..(i + 2) * n]))
-            .collect();
-        let mut samples = Vec::with_capacity(n);
-        for (x, site) in row.iter_mut().enumerate() {
-            let i = y * w + x;
-            if sums[i] <= floor {
-                continue;
+    out.par_chunks_mut(w)
+        .enumerate()
+        .for_each_init(RowSums::default, |sums_of_row, (y, row)| {
+            let nodes = field.row_nodes(y);
+            let cells: Vec<RowCell> = (0..field.nx - 1)
+                .map(|i| RowCell::new(&nodes[i * n..(i + 1) * n], &nodes[(i + 1) * n..(i + 2) * n]))
+                .collect();
+            sums_of_row.accumulate(frames, &inverse, field, &cells, y);
+            for (c, cell) in cells.iter().enumerate() {
+                let first = c * field.step;
+                let last = if c + 1 == cells.len() {
+                    w
+                } else {
+                    (first + field.step).min(w)
+                };
+                let (lo, hi) = (first, ((c + 1) * field.step).min(field.width - 1));
+                let sums = &sums[y * w + first..y * w + last];
+                fit_run(
+                    cell,
+                    (lo, hi),
+                    first,
+                    sums_of_row,
+                    sums,
+                    &mut row[first..last],
+                );
             }
-            let (c, t) = field.locate(x, field.nx, field.width);
-            let cell = &cells[c];
-            let own = pattern[y % 2][x % 2] as usize;
-            let value = |k: usize| frames[k].values[i] as f64 * inverse[k][own];
-            let fit = if frames.iter().any(|f| f.saturated[i]) {
+            // Black sites, and sites saturated in some frame (fitted to the other frames).
+            let mut samples = Vec::with_capacity(n);
+            for (x, site) in row.iter_mut().enumerate() {
+                let i = y * w + x;
+                if sums[i] <= floor {
+                    *site = SiteFit::BLACK;
+                    continue;
+                }
+                if !sums_of_row.saturated[x] {
+                    continue;
+                }
+                let (c, t) = field.locate(x, field.nx, field.width);
+                let cell = &cells[c];
+                let own = pattern[y % 2][x % 2] as usize;
+                let value = |k: usize| frames[k].values[i] as f64 * inverse[k][own];
                 samples.clear();
                 samples.extend(
                     (0..n)
                         .filter(|&k| !frames[k].saturated[i])
                         .map(|k| (cell.vector(k, t), value(k))),
                 );
-                fit_scaled_normal(samples.iter().map(|(s, v)| (s, *v)))
-            } else {
-                cell.fit_every_frame(t, value)
-            };
-            let flat = cell.flat[0] + t * cell.flat[1];
-            *site = SiteFit::from_fit(fit, sums[i], flat);
-        }
-    });
+                let fit = fit_scaled_normal(samples.iter().map(|(s, v)| (s, *v)));
+                let flat = cell.flat[0] + t * cell.flat[1];
+                *site = SiteFit::from_fit(fit, sums[i], flat);
+            }
+        });
     out
+}
+
+/// Every site of one cell's run of a row (`first` its first column, `(lo, hi)` the cell's
+/// node columns) fitted to every frame, as [`RowCell::fit_every_frame`] and
+/// [`SiteFit::from_fit`] would, branch-free so that it vectorises; black and saturated sites
+/// are redone by the caller.
+fn fit_run(
+    cell: &RowCell,
+    (lo, hi): (usize, usize),
+    first: usize,
+    sums_of_row: &RowSums,
+    sums: &[f32],
+    out: &mut [SiteFit],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2 (checked above).
+        return unsafe { fit_run_avx2(cell, (lo, hi), first, sums_of_row, sums, out) };
+    }
+    fit_run_portable(cell, (lo, hi), first, sums_of_row, sums, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn fit_run_avx2(
+    cell: &RowCell,
+    (lo, hi): (usize, usize),
+    first: usize,
+    sums_of_row: &RowSums,
+    sums: &[f32],
+    out: &mut [SiteFit],
+) {
+    fit_run_portable(cell, (lo, hi), first, sums_of_row, sums, out)
+}
+
+#[inline(always)]
+fn fit_run_portable(
+    cell: &RowCell,
+    (lo, hi): (usize, usize),
+    first: usize,
+    sums_of_row: &RowSums,
+    sums: &[f32],
+    out: &mut [SiteFit],
+) {
+    let frames = cell.start.len();
+    for (j, (site, &sum)) in out.iter_mut().zip(sums).enumerate() {
+        let x = first + j;
+        // `ShadingField::locate`'s fraction.
+        let t = if hi > lo {
+            (x as f64 - lo as f64) / (hi - lo) as f64
+        } else {
+            0.0
+        };
+        let t = t.clamp(0.0, 1.0);
+        let fit = cell.fit_every_frame_unchecked(t, sums_of_row.rhs(x));
+        let flat = cell.flat[0] + t * cell.flat[1];
+        let (b, determined) = fit;
+        *site = SiteFit::from_fit_selected((b, determined && frames >= 3), sum, flat);
+    }
+}
+
+/// One row's right-hand sides for [`RowCell::fit_every_frame`] (`sum_k v_k start_k` and
+/// `sum_k v_k step_k` per site, over every frame), and which sites are saturated in some
+/// frame. Summed frame by frame over the whole row, so that the loops run over contiguous
+/// samples and vectorise; a site at a time (eleven frames' samples from eleven places) took
+/// most of a second at 16 MP. The sums are the same, in the same order, as a site at a time.
+#[derive(Default)]
+struct RowSums {
+    /// Frame k's white-balanced samples of the row.
+    balanced: Vec<f64>,
+    start: [Vec<f64>; 3],
+    step: [Vec<f64>; 3],
+    saturated: Vec<bool>,
+}
+
+impl RowSums {
+    fn accumulate(
+        &mut self,
+        frames: &[LinearMosaic],
+        inverse: &[[f64; 3]],
+        field: &ShadingField,
+        cells: &[RowCell],
+        y: usize,
+    ) {
+        let w = field.width;
+        let pattern = frames[0].pattern[y % 2].map(usize::from);
+        for plane in self.start.iter_mut().chain(&mut self.step) {
+            plane.clear();
+            plane.resize(w, 0.0);
+        }
+        self.saturated.clear();
+        self.saturated.resize(w, false);
+        self.balanced.resize(w, 0.0);
+        for (k, frame) in frames.iter().enumerate() {
+            let row = y * w..(y + 1) * w;
+            let inv = pattern.map(|c| inverse[k][c]);
+            for (pair, values) in self
+                .balanced
+                .chunks_mut(2)
+                .zip(frame.values[row.clone()].chunks(2))
+            {
+                for (b, (&v, inv)) in pair.iter_mut().zip(values.iter().zip(inv)) {
+                    *b = v as f64 * inv;
+                }
+            }
+            for (s, &f) in self.saturated.iter_mut().zip(&frame.saturated[row]) {
+                *s |= f;
+            }
+            for (c, cell) in cells.iter().enumerate() {
+                let first = c * field.step;
+                let last = if c + 1 == cells.len() {
+                    w
+                } else {
+                    (first + field.step).min(w)
+                };
+                let (a, d) = (cell.start[k], cell.step[k]);
+                let v = &self.balanced[first..last];
+                for m in 0..3 {
+                    for (r, &v) in self.start[m][first..last].iter_mut().zip(v) {
+                        *r += v * a[m];
+                    }
+                    for (r, &v) in self.step[m][first..last].iter_mut().zip(v) {
+                        *r += v * d[m];
+                    }
+                }
+            }
+        }
+    }
+
+    /// Site `x`'s two sums.
+    fn rhs(&self, x: usize) -> ([f64; 3], [f64; 3]) {
+        (
+            std::array::from_fn(|m| self.start[m][x]),
+            std::array::from_fn(|m| self.step[m][x]),
+        )
+    }
 }
 
 /// The least-squares `b` with `b . s = v` over `samples` of `(s, v)`.
@@ -301,9 +466,14 @@ fn fit_scaled_normal<'a>(samples: impl Iterator<Item = (&'a [f64; 3], f64)>) -> 
 /// The `b` with `m b = r` for the normal equations `m` of `count` samples; `None` when fewer
 /// than three samples or shading vectors too close to a plane leave it undetermined.
 fn solve_normal_equations(m: [[f64; 3]; 3], r: [f64; 3], count: usize) -> Option<[f64; 3]> {
-    if count < 3 {
-        return None;
-    }
+    let (b, determined) = solve_normal_equations_selected(m, r);
+    (count >= 3 && determined).then_some(b)
+}
+
+/// [`solve_normal_equations`] without the count: `b`, whatever it is, and whether `m`
+/// determines it. Branch-free, so that a loop over sites vectorises.
+#[inline(always)]
+fn solve_normal_equations_selected(m: [[f64; 3]; 3], r: [f64; 3]) -> ([f64; 3], bool) {
     let cof = |a: usize, b: usize| {
         let (a1, a2) = ((a + 1) % 3, (a + 2) % 3);
         let (b1, b2) = ((b + 1) % 3, (b + 2) % 3);
@@ -314,13 +484,9 @@ fn solve_normal_equations(m: [[f64; 3]; 3], r: [f64; 3], count: usize) -> Option
     // Shading vectors nearly in a plane leave b's component across it to the noise.
     // (A NaN determinant fails the test too.)
     let determined = det > 1e-9 * trace.powi(3);
-    if !determined {
-        return None;
-    }
     // M is symmetric: its inverse is the cofactor matrix over the determinant.
-    Some(std::array::from_fn(|a| {
-        (0..3).map(|c| cof(a, c) * r[c]).sum::<f64>() / det
-    }))
+    let b = std::array::from_fn(|a| (0..3).map(|c| cof(a, c) * r[c]).sum::<f64>() / det);
+    (b, determined)
 }
 
 /// `|b|` of [`fit_scaled_normal`].
