@@ -161,6 +161,10 @@ pub fn frame_consistency(
     })
 }
 
+/// Noise-floor deviations at or below which a reading is dark (shadowed): what the solve's
+/// default takes.
+const DARK_SIGMAS: f64 = 3.0;
+
 /// The deleted residuals of pixel `(x, y)`: for each usable frame `k`, its luminance less the
 /// Lambertian fit of the pixel's other usable frames, over the standard deviation of that
 /// difference. A frame is usable where it is finite, not saturated and above the dark level
@@ -182,7 +186,9 @@ fn pixel_residuals(
         return;
     };
     let i = y * frames.width + x;
-    let dark = 3.0 * noise.luminance_floor_variance(&LUMINANCE_WEIGHTS).sqrt();
+    // The solve's own test of a dark light (on the pixel's CFA sample where its channels
+    // share one), so that the frames judged here are the ones the solve uses.
+    let dark = noise.dark_test(&LUMINANCE_WEIGHTS, DARK_SIGMAS);
     let mut rows: Vec<Row> = Vec::with_capacity(frames.lights.len());
     for (k, frame) in frames.lights.iter().enumerate() {
         if frame.saturated.as_ref().is_some_and(|m| m.data[i]) {
@@ -193,7 +199,8 @@ fn pixel_residuals(
         let lum: f64 = (0..3).map(|c| LUMINANCE_WEIGHTS[c] * raw[c] * inv[c]).sum();
         let sample = ill.sample(k, &point);
         let var = noise.luminance_variance(&raw, &inv, &LUMINANCE_WEIGHTS, lum, (x, y));
-        if lum.is_finite() && lum > dark && sample.falloff > 0.0 && var > 0.0 {
+        let usable = lum.is_finite() && !dark.is_dark(&raw, (x, y));
+        if usable && sample.falloff > 0.0 && var > 0.0 {
             rows.push(Row {
                 frame: k,
                 light: sample.direction * sample.falloff,
