@@ -413,6 +413,32 @@ mod tests {
         frame_consistency(frames, &source, LightModel::Distant, noise, None).unwrap()
     }
 
+    /// Where a pixel's channels share one CFA sample, a light whose sample is within three
+    /// floor deviations is dark, as the solve takes it, however bright the pixel's luminance
+    /// (its missing channels) is: the frame is not among the pixel's residuals.
+    #[test]
+    fn a_reading_dark_on_its_own_cfa_sample_is_left_out_as_the_solve_leaves_it() {
+        let (mut frames, d, i, mut noise) = lambertian_set();
+        noise.shared_cfa_sample = Some([[0, 1], [1, 2]]);
+        let (x, y) = (40, 40); // an R site of RGGB
+        let source = LightSource::Directions {
+            directions: &d,
+            intensities: &i,
+        };
+        let (w, h) = (frames.width, frames.height);
+        let ill = Illumination::new(&source, LightModel::Distant, w, h, frames.window).unwrap();
+        let used = |frames: &Frames| {
+            let mut used = Vec::new();
+            pixel_residuals(frames, &ill, &noise, x, y, |k, _| used.push(k));
+            used
+        };
+        assert!(used(&frames).contains(&0), "{:?}", used(&frames));
+        // Two floor deviations (the floor's deviation is 1e-3); G and B stay hundreds above.
+        frames.lights[0].rgb.r.data[y * w + x] = 2e-3;
+        let left = used(&frames);
+        assert!(!left.contains(&0) && left.len() >= 6, "{left:?}");
+    }
+
     #[test]
     fn clean_lambertian_frames_agree_and_their_residuals_are_noise_sized() {
         let (frames, d, i, noise) = lambertian_set();
