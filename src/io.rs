@@ -1,9 +1,15 @@
 //! Image files (DESIGN.md layer 2): 16-bit PNG and float EXR, read and written (atomically),
 //! for every reader and writer of the house. Nothing here knows what the pixels mean.
 
+use std::borrow::Cow;
 use std::io::Cursor;
 use std::path::Path;
 
+use exr::block::lines::LineRefMut;
+use exr::image::write::samples::{SamplesWriter, WritableSamples};
+use exr::math::RoundingMode;
+use exr::meta::attribute::{LevelMode, SampleType};
+use exr::meta::header::Header;
 use exr::prelude::*;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::DynamicImage;
@@ -265,18 +271,13 @@ pub enum ExrCompression {
 /// Named `f32` channels of one size encoded as single-layer EXR file bytes (RLE, see
 /// [`ExrCompression`]); `path` only names the file in errors.
 pub fn encode_exr(path: &Path, channels: &[(&str, &Plane)]) -> Result<Vec<u8>> {
-    let owned = channels
-        .iter()
-        .map(|(name, plane)| (*name, (*plane).clone()))
-        .collect();
-    encode_exr_planes(path, owned, ExrCompression::Rle)
+    encode_exr_planes(path, channels, ExrCompression::Rle)
 }
 
-/// [`encode_exr`] taking the planes (the encoder owns its samples, so borrowed planes would
-/// be copied) and the compression.
+/// [`encode_exr`] with the compression chosen.
 pub fn encode_exr_planes(
     path: &Path,
-    channels: Vec<(&str, Plane)>,
+    channels: &[(&str, &Plane)],
     compression: ExrCompression,
 ) -> Result<Vec<u8>> {
     let (size, samples) = planes_as_samples(path, channels)?;
@@ -287,19 +288,19 @@ pub fn encode_exr_planes(
 pub fn encode_exr_planes_into(
     out: impl std::io::Write + std::io::Seek,
     path: &Path,
-    channels: Vec<(&str, Plane)>,
+    channels: &[(&str, &Plane)],
     compression: ExrCompression,
 ) -> Result<()> {
     let (size, samples) = planes_as_samples(path, channels)?;
     encode_exr_samples_into(out, path, size, samples, compression)
 }
 
-/// Planes of one size as single-precision channels, and that size.
+/// Planes of one size as single-precision channels (borrowed), and that size.
 #[allow(clippy::type_complexity)]
 fn planes_as_samples<'a>(
     path: &Path,
-    channels: Vec<(&'a str, Plane)>,
-) -> Result<((usize, usize), Vec<(&'a str, ExrSamples)>)> {
+    channels: &[(&'a str, &'a Plane)],
+) -> Result<((usize, usize), Vec<(&'a str, ExrSamples<'a>)>)> {
     let Some((_, first)) = channels.first() else {
         return Err(PsError::image(path, "no channels to write"));
     };
@@ -311,22 +312,24 @@ fn planes_as_samples<'a>(
         return Err(PsError::image(path, "channels of different sizes"));
     }
     let samples = channels
-        .into_iter()
-        .map(|(name, plane)| (name, ExrSamples::F32(plane.data)))
+        .iter()
+        .map(|&(name, plane)| (name, ExrSamples::F32(Cow::Borrowed(&plane.data))))
         .collect();
     Ok(((width, height), samples))
 }
 
-/// A channel's samples as an EXR stores them.
-pub enum ExrSamples {
+/// A channel's samples as an EXR stores them, borrowed where the caller holds them already:
+/// the encoder reads each line straight from them (at 16 MP a copy of a map's planes was
+/// 190 MB of fresh memory per file).
+pub enum ExrSamples<'a> {
     /// Single precision.
-    F32(Vec<f32>),
+    F32(Cow<'a, [f32]>),
     /// Half precision: exact for whole numbers up to 2048 (class and count channels), half
     /// the bytes of `F32`.
     F16(Vec<exr::prelude::f16>),
 }
 
-impl ExrSamples {
+impl ExrSamples<'_> {
     /// Whole numbers (each at most 2048) as half-precision samples, which hold them exactly.
     pub fn small_integers(values: impl Iterator<Item = u16>) -> Self {
         ExrSamples::F16(
@@ -351,6 +354,57 @@ impl ExrSamples {
             ExrSamples::F32(_) => 4,
             ExrSamples::F16(_) => 2,
         }
+    }
+}
+
+/// The exr crate's hook for a channel's samples: the file's sample type, and a line reader.
+impl<'s> WritableSamples<'s> for ExrSamples<'_> {
+    type Writer = ExrLineWriter<'s>;
+
+    fn sample_type(&self) -> SampleType {
+        match self {
+            ExrSamples::F32(_) => SampleType::F32,
+            ExrSamples::F16(_) => SampleType::F16,
+        }
+    }
+
+    fn infer_level_modes(&self) -> (LevelMode, RoundingMode) {
+        (LevelMode::Singular, RoundingMode::Down)
+    }
+
+    fn create_samples_writer(&'s self, header: &Header) -> Self::Writer {
+        ExrLineWriter {
+            width: header.layer_size.width(),
+            samples: match self {
+                ExrSamples::F32(v) => SampleSlice::F32(v),
+                ExrSamples::F16(v) => SampleSlice::F16(v),
+            },
+        }
+    }
+}
+
+/// Copies one line of a channel's samples into the block the exr crate is filling.
+pub struct ExrLineWriter<'s> {
+    width: usize,
+    samples: SampleSlice<'s>,
+}
+
+enum SampleSlice<'s> {
+    F32(&'s [f32]),
+    F16(&'s [exr::prelude::f16]),
+}
+
+impl SamplesWriter for ExrLineWriter<'_> {
+    fn extract_line(&self, line: LineRefMut<'_>) {
+        let start = line.location.position.y() * self.width + line.location.position.x();
+        let range = start..start + line.location.sample_count;
+        // The line's byte slice is sized by the crate from the same header: a mismatch is a
+        // bug here, not bad input.
+        match self.samples {
+            SampleSlice::F32(v) => line.write_samples_from_slice(&v[range]),
+            SampleSlice::F16(v) => line.write_samples_from_slice(&v[range]),
+        }
+        .expect("an EXR line holds its samples");
     }
 }
 
@@ -388,13 +442,7 @@ pub fn encode_exr_samples_into(
     }
     let list = channels
         .into_iter()
-        .map(|(name, samples)| {
-            let samples = match samples {
-                ExrSamples::F32(v) => FlatSamples::F32(v),
-                ExrSamples::F16(v) => FlatSamples::F16(v),
-            };
-            AnyChannel::new(name, samples)
-        })
+        .map(|(name, samples)| AnyChannel::new(name, samples))
         .collect();
     let encoding = match compression {
         ExrCompression::Rle => Encoding::FAST_LOSSLESS,
@@ -604,8 +652,8 @@ mod tests {
         let err = read_exr(&path, &["G"]).unwrap_err().to_string();
         assert!(err.contains("x.exr") && err.contains("\"G\""), "{err}");
         // Uncompressed storage reads back the same samples.
-        let channels = vec![("R", a.clone()), ("residual", b.clone())];
-        let bytes = encode_exr_planes(&path, channels, ExrCompression::None).unwrap();
+        let channels = [("R", &a), ("residual", &b)];
+        let bytes = encode_exr_planes(&path, &channels, ExrCompression::None).unwrap();
         write_atomic(&path, &bytes).unwrap();
         assert_eq!(read_exr(&path, &["R", "residual"]).unwrap(), vec![a, b]);
     }
@@ -620,7 +668,7 @@ mod tests {
             &path,
             (3, 2),
             vec![
-                ("residual", ExrSamples::F32(residual.clone())),
+                ("residual", ExrSamples::F32(Cow::Borrowed(&residual))),
                 (
                     "lights_used",
                     ExrSamples::small_integers(counts.iter().copied()),

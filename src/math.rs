@@ -1,6 +1,8 @@
 //! Small vector math shared by the solve and its evaluation (layer 0: imports nothing of the
 //! crate), so that neither has to reach into the other for it.
 
+pub mod select;
+
 use nalgebra::Vector3;
 
 /// Angle between two vectors in degrees, accurate for tiny angles (atan2 of cross and dot:

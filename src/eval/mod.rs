@@ -15,6 +15,7 @@ pub use run::{evaluate, EvalOptions, EvalReport, EvalSet, Row};
 use nalgebra::Vector3;
 use serde::Serialize;
 
+use crate::math::select::select_f32;
 use crate::plane::Plane;
 use crate::solve::{PixelStatus, SolveResult};
 
@@ -40,29 +41,9 @@ impl Stats {
         // Order statistics by selection, not a full sort: tens of millions of values at 16 MP.
         let n = values.len();
         let mean = values.iter().sum::<f64>() / n as f64;
-        let index = |q: f64| ((n - 1) as f64 * q).round() as usize;
+        let at = |q: f64| quantile_position(n, q);
         let [median, p95, max] =
-            order_statistics(values, [index(0.5), index(0.95), n - 1], f64::total_cmp);
-        Stats {
-            mean,
-            median,
-            p95,
-            max,
-        }
-    }
-
-    /// [`Stats::of`] for single-precision values (the mean summed in double precision):
-    /// half the memory to select in, for the tens of millions of per-channel albedo errors.
-    pub fn of_f32(values: &mut [f32]) -> Stats {
-        if values.is_empty() {
-            return Stats::default();
-        }
-        let n = values.len();
-        let mean = values.iter().map(|&v| v as f64).sum::<f64>() / n as f64;
-        let index = |q: f64| ((n - 1) as f64 * q).round() as usize;
-        let [median, p95, max] =
-            order_statistics(values, [index(0.5), index(0.95), n - 1], f32::total_cmp)
-                .map(f64::from);
+            order_statistics(values, [at(0.5), at(0.95), n - 1], f64::total_cmp);
         Stats {
             mean,
             median,
@@ -135,12 +116,44 @@ fn truth_at(truth: &[Plane; 3], i: usize) -> Vector3<f64> {
 
 /// The angular errors (degrees) of the solved pixels' normals, in pixel order.
 pub fn solved_normal_errors_deg(result: &SolveResult, truth: &[Plane; 3]) -> Vec<f64> {
+    collect_kept(
+        result.status.len(),
+        |i| result.status[i] == PixelStatus::Solved,
+        |i| error_at(result, truth, i),
+    )
+}
+
+/// `value(i)` for every `i` in `0..n` that `kept(i)`, in order, computed in parallel. Counted
+/// block by block first, then written straight into one vector: a parallel collect of a
+/// filtered iterator gathers per-thread vectors and copies them into the result, at 16 MP a
+/// second 128 MB of fresh pages.
+fn collect_kept<T: Copy + Default + Send>(
+    n: usize,
+    kept: impl Fn(usize) -> bool + Sync,
+    value: impl Fn(usize) -> T + Sync,
+) -> Vec<T> {
     use rayon::prelude::*;
-    (0..result.status.len())
+    const BLOCK: usize = 1 << 16;
+    let block = |b: usize| b * BLOCK..((b + 1) * BLOCK).min(n);
+    let counts: Vec<usize> = (0..n.div_ceil(BLOCK))
         .into_par_iter()
-        .filter(|&i| result.status[i] == PixelStatus::Solved)
-        .map(|i| error_at(result, truth, i))
-        .collect()
+        .map(|b| block(b).filter(|&i| kept(i)).count())
+        .collect();
+    let mut out = vec![T::default(); counts.iter().sum()];
+    let mut slices = Vec::with_capacity(counts.len());
+    let mut rest = out.as_mut_slice();
+    for &count in &counts {
+        let (head, tail) = rest.split_at_mut(count);
+        slices.push(head);
+        rest = tail;
+    }
+    slices.into_par_iter().enumerate().for_each(|(b, slice)| {
+        let values = block(b).filter(|&i| kept(i)).map(&value);
+        for (slot, v) in slice.iter_mut().zip(values) {
+            *slot = v;
+        }
+    });
+    out
 }
 
 /// Compares a solve with ground-truth normal and albedo maps over the pixels it solved.
@@ -150,17 +163,16 @@ pub fn compare(result: &SolveResult, normal: &[Plane; 3], albedo: &[Plane; 3]) -
 }
 
 /// [`compare`] from the solved pixels' normal errors already computed
-/// ([`solved_normal_errors_deg`]; reordered here). The albedo errors and both sets of order
-/// statistics are computed in parallel: at 16 MP they are 16 M and 48 M values.
+/// ([`solved_normal_errors_deg`]; reordered here). The albedo errors' statistics are computed
+/// beside the normals' (at 16 MP they are 48 M values, selected without storing them).
 pub fn compare_with_errors(
     result: &SolveResult,
     angles: &mut [f64],
     albedo: &[Plane; 3],
 ) -> TruthComparison {
-    let mut albedo_errors = albedo_relative_errors(result, albedo);
     let pixels = angles.len();
     let (normal_error_deg, albedo_rel_error) =
-        rayon::join(|| Stats::of(angles), || Stats::of_f32(&mut albedo_errors));
+        rayon::join(|| Stats::of(angles), || albedo_error_stats(result, albedo));
     TruthComparison {
         pixels,
         normal_error_deg,
@@ -168,46 +180,35 @@ pub fn compare_with_errors(
     }
 }
 
-/// The relative albedo error of every channel of every solved pixel whose true albedo is
-/// positive, in single precision (the figures are reported to three digits), in pixel order.
-/// Counted block by block first, then written straight into one vector: a parallel collect
-/// of a filtered iterator gathers per-thread vectors and copies them into the result, at
-/// 16 MP a second 190 MB of fresh pages.
-fn albedo_relative_errors(result: &SolveResult, albedo: &[Plane; 3]) -> Vec<f32> {
-    use rayon::prelude::*;
-    const BLOCK: usize = 1 << 16;
-    let n = result.status.len();
-    let kept =
-        |i: usize, c: usize| result.status[i] == PixelStatus::Solved && albedo[c].data[i] > 0.0;
-    let error = |i: usize, c: usize| {
-        let truth = albedo[c].data[i] as f64;
-        kept(i, c).then(|| ((result.albedo[c].data[i] as f64 - truth).abs() / truth) as f32)
-    };
-    // The count pass tests which values are kept; only the fill computes them.
-    let counts: Vec<usize> = (0..n.div_ceil(BLOCK))
-        .into_par_iter()
-        .map(|b| {
-            (b * BLOCK..((b + 1) * BLOCK).min(n))
-                .map(|i| (0..3).filter(|&c| kept(i, c)).count())
-                .sum()
+/// The statistics of the relative albedo error `|albedo - true| / true` of every channel of
+/// every solved pixel whose true albedo is positive, each error in single precision (the
+/// figures are reported to three digits). The order statistics are those [`Stats::of`] finds
+/// in a vector of the errors; the mean is summed block by block, so it may differ from a sum
+/// in pixel order in the last digits of a double.
+fn albedo_error_stats(result: &SolveResult, albedo: &[Plane; 3]) -> Stats {
+    let error = |j: usize| {
+        let (i, c) = (j / 3, j % 3);
+        let truth = albedo[c].data[i];
+        (result.status[i] == PixelStatus::Solved && truth > 0.0).then(|| {
+            let truth = truth as f64;
+            ((result.albedo[c].data[i] as f64 - truth).abs() / truth) as f32
         })
-        .collect();
-    let mut out = vec![0.0f32; counts.iter().sum()];
-    let mut slices = Vec::with_capacity(counts.len());
-    let mut rest = out.as_mut_slice();
-    for &count in &counts {
-        let (head, tail) = rest.split_at_mut(count);
-        slices.push(head);
-        rest = tail;
+    };
+    let positions = |n: usize| [quantile_position(n, 0.5), quantile_position(n, 0.95), n - 1];
+    match select_f32(3 * result.status.len(), error, positions) {
+        None => Stats::default(),
+        Some(s) => Stats {
+            mean: s.sum / s.count as f64,
+            median: s.at[0] as f64,
+            p95: s.at[1] as f64,
+            max: s.at[2] as f64,
+        },
     }
-    slices.into_par_iter().enumerate().for_each(|(b, slice)| {
-        let errors = (b * BLOCK..((b + 1) * BLOCK).min(n))
-            .flat_map(|i| (0..3).filter_map(move |c| error(i, c)));
-        for (slot, e) in slice.iter_mut().zip(errors) {
-            *slot = e;
-        }
-    });
-    out
+}
+
+/// The sorted position of quantile `q` among `n` values: `round(q (n - 1))`.
+fn quantile_position(n: usize, q: f64) -> usize {
+    ((n - 1) as f64 * q).round() as usize
 }
 
 /// Normals against a ground-truth normal map over an object mask, as photometric-stereo
@@ -258,7 +259,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn albedo_errors_are_those_of_solved_pixels_with_positive_truth_in_pixel_order() {
+    fn albedo_error_stats_are_those_of_the_solved_pixels_channels_with_positive_truth() {
         // Over several blocks, with unsolved pixels and channels whose truth is 0.
         let (w, h) = (1000, 150);
         let mut result = SolveResult::new(w, h);
@@ -281,12 +282,29 @@ mod tests {
             for c in 0..3 {
                 let t = truth[c].data[i] as f64;
                 if result.status[i] == PixelStatus::Solved && t > 0.0 {
-                    want.push(((result.albedo[c].data[i] as f64 - t).abs() / t) as f32);
+                    want.push(((result.albedo[c].data[i] as f64 - t).abs() / t) as f32 as f64);
                 }
             }
         }
         assert!(want.len() > 300_000, "{}", want.len());
-        assert_eq!(albedo_relative_errors(&result, &truth), want);
+        let got = albedo_error_stats(&result, &truth);
+        let want = Stats::of(&mut want);
+        assert_eq!(
+            (got.median, got.p95, got.max),
+            (want.median, want.p95, want.max)
+        );
+        assert!(
+            (got.mean - want.mean).abs() <= 1e-12 * want.mean,
+            "{got:?} {want:?}"
+        );
+        // The solve's normal errors: the solved pixels', in pixel order.
+        let normal: [Plane; 3] = std::array::from_fn(|c| Plane::new(w, h, (c == 2) as u8 as f32));
+        let errors = solved_normal_errors_deg(&result, &normal);
+        let want: Vec<f64> = (0..w * h)
+            .filter(|&i| result.status[i] == PixelStatus::Solved)
+            .map(|i| error_at(&result, &normal, i))
+            .collect();
+        assert_eq!(errors, want);
     }
 
     #[test]
@@ -313,11 +331,6 @@ mod tests {
             );
             let mean = sorted.iter().sum::<f64>() / n as f64;
             assert!((s.mean - mean).abs() <= 1e-12 * mean.abs().max(1.0), "{n}");
-            // The single-precision form: the same order statistics (the values are exact
-            // in f32) and the same mean.
-            let mut v32: Vec<f32> = v.iter().map(|&x| x as f32).collect();
-            assert_eq!(Stats::of_f32(&mut v32), s, "{n}");
         }
-        assert_eq!(Stats::of_f32(&mut []), Stats::default());
     }
 }

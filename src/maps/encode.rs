@@ -1,6 +1,8 @@
 //! Encodings of the solved maps for game engines: normal maps in OpenGL (+Y up) or DirectX
 //! (+Y down) convention stored as `n * 0.5 + 0.5`, and albedo in sRGB for PNG.
 
+use std::borrow::Cow;
+
 use serde::{Deserialize, Serialize};
 
 use rayon::prelude::*;
@@ -31,14 +33,22 @@ impl NormalConvention {
     }
 }
 
-/// The normal map as three planes in the requested convention; unsolved pixels are flat.
-pub fn normal_planes(result: &SolveResult, convention: NormalConvention) -> [Plane; 3] {
+/// The normal map as three planes in the requested convention (unsolved pixels hold the
+/// flat normal the solve leaves there): the solve's own planes, borrowed, except Y in the
+/// DirectX convention, which is negated into a new plane.
+pub fn normal_planes(result: &SolveResult, convention: NormalConvention) -> [Cow<'_, Plane>; 3] {
     let [nx, ny, nz] = &result.normal;
-    let mut y = ny.clone();
-    for v in &mut y.data {
-        *v = convention.y(*v);
-    }
-    [nx.clone(), y, nz.clone()]
+    let y = match convention {
+        NormalConvention::OpenGl => Cow::Borrowed(ny),
+        NormalConvention::DirectX => {
+            let mut y = ny.clone();
+            for v in &mut y.data {
+                *v = convention.y(*v);
+            }
+            Cow::Owned(y)
+        }
+    };
+    [Cow::Borrowed(nx), y, Cow::Borrowed(nz)]
 }
 
 /// `[-1, 1]` to 16-bit unsigned: `round((v * 0.5 + 0.5) * 65535)`.

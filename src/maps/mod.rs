@@ -8,6 +8,7 @@ pub mod encode;
 pub mod html;
 pub mod report;
 
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
@@ -213,22 +214,28 @@ fn encode_map_into(
         ),
         MapFile::NormalExr => {
             let [nx, ny, nz] = encode::normal_planes(result, options.normal_convention);
-            let channels = vec![("R", nx), ("G", ny), ("B", nz)];
-            crate::io::encode_exr_planes_into(out, path, channels, ExrCompression::None)
+            let channels = [("R", &*nx), ("G", &*ny), ("B", &*nz)];
+            crate::io::encode_exr_planes_into(out, path, &channels, ExrCompression::None)
         }
         MapFile::AlbedoExr => {
-            let [r, g, b] = result.albedo.clone();
-            let channels = vec![("R", r), ("G", g), ("B", b)];
-            crate::io::encode_exr_planes_into(out, path, channels, ExrCompression::None)
+            let [r, g, b] = &result.albedo;
+            let channels = [("R", r), ("G", g), ("B", b)];
+            crate::io::encode_exr_planes_into(out, path, &channels, ExrCompression::None)
         }
         MapFile::Confidence => {
             let channels = vec![
-                ("residual", ExrSamples::F32(result.residual.data.clone())),
+                (
+                    "residual",
+                    ExrSamples::F32(Cow::Borrowed(&result.residual.data)),
+                ),
                 (
                     "predicted_error_deg",
-                    ExrSamples::F32(result.predicted_error_deg.data.clone()),
+                    ExrSamples::F32(Cow::Borrowed(&result.predicted_error_deg.data)),
                 ),
-                ("condition", ExrSamples::F32(result.condition.data.clone())),
+                (
+                    "condition",
+                    ExrSamples::F32(Cow::Borrowed(&result.condition.data)),
+                ),
                 (
                     "lights_used",
                     ExrSamples::small_integers(result.lights_used.iter().map(|&v| v as u16)),

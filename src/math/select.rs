@@ -1,0 +1,178 @@
+//! Order statistics of tens of millions of computed `f32` values without storing them: the
+//! percentiles of a 16 MP map's per-pixel figures (the report page's colour scales, the albedo
+//! error against a synthetic set's truth). Sorting, or selecting in a vector of the values,
+//! costs a vector of them (190 MB for 48 M albedo errors, all of it fresh memory) and a
+//! selection pass over all of it; here the values are computed twice instead, and counted.
+//!
+//! How: each value has an unsigned key in `f32::total_cmp`'s order. The first pass counts the
+//! values by their key's top 16 bits (a histogram, block by block in parallel); the counts
+//! name the bucket that holds each wanted position. The second pass gathers only the values
+//! in those buckets and selects among them. The result is exactly what
+//! `select_nth_unstable_by(k, f32::total_cmp)` finds in a vector of all the values: values
+//! with one key have one bit pattern.
+
+use rayon::prelude::*;
+
+/// Indices per block: each block of the first pass fills a histogram of its own.
+const BLOCK: usize = 1 << 20;
+
+/// Buckets of the first pass: the key's top 16 bits.
+const BUCKETS: usize = 1 << 16;
+
+/// The count, the sum (in double precision, block by block, so the same on every run) and
+/// the values at chosen sorted positions of the values `value(i)` gives for `i` in `0..n`
+/// (`None`: no value at `i`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Selected<const K: usize> {
+    /// How many values there are.
+    pub count: usize,
+    /// Their sum.
+    pub sum: f64,
+    /// The values at the positions asked for, in the order asked.
+    pub at: [f32; K],
+}
+
+/// The values that `value(i)` gives for `i` in `0..n`, counted and summed, and those at the
+/// ascending sorted positions (by `f32::total_cmp`) that `positions` names given the count;
+/// `None` when there is no value. `value` is called twice per index, from several threads.
+///
+/// # Panics
+/// When `positions` names a position at or past the count.
+pub fn select_f32<const K: usize>(
+    n: usize,
+    value: impl Fn(usize) -> Option<f32> + Sync,
+    positions: impl FnOnce(usize) -> [usize; K],
+) -> Option<Selected<K>> {
+    let blocks = n.div_ceil(BLOCK);
+    let block_range = |b: usize| b * BLOCK..((b + 1) * BLOCK).min(n);
+    // Pass 1: how many values fall in each bucket, and their sum.
+    let partials: Vec<(Vec<u32>, f64)> = (0..blocks)
+        .into_par_iter()
+        .map(|b| {
+            let mut counts = vec![0u32; BUCKETS];
+            let mut sum = 0.0f64;
+            for v in block_range(b).filter_map(&value) {
+                counts[bucket(v)] += 1;
+                sum += v as f64;
+            }
+            (counts, sum)
+        })
+        .collect();
+    let mut counts = vec![0usize; BUCKETS];
+    let mut sum = 0.0;
+    for (block_counts, block_sum) in &partials {
+        for (total, &c) in counts.iter_mut().zip(block_counts) {
+            *total += c as usize;
+        }
+        sum += block_sum;
+    }
+    let count: usize = counts.iter().sum();
+    if count == 0 {
+        return None;
+    }
+    // Which bucket holds each wanted position, and where in it.
+    let wanted = positions(count);
+    let mut starts = Vec::with_capacity(BUCKETS);
+    let mut before = 0;
+    for &c in &counts {
+        starts.push(before);
+        before += c;
+    }
+    let located: [(usize, usize); K] = wanted.map(|k| {
+        assert!(k < count, "position {k} of {count} values");
+        let b = starts.partition_point(|&s| s <= k) - 1;
+        (b, k - starts[b])
+    });
+    let mut targets: Vec<usize> = located.iter().map(|&(b, _)| b).collect();
+    targets.sort_unstable();
+    targets.dedup();
+    // Pass 2: the values of those buckets, gathered per bucket; then a selection in each.
+    let gathered: Vec<Vec<Vec<f32>>> = (0..blocks)
+        .into_par_iter()
+        .map(|b| {
+            let mut per_target = vec![Vec::new(); targets.len()];
+            for v in block_range(b).filter_map(&value) {
+                if let Ok(t) = targets.binary_search(&bucket(v)) {
+                    per_target[t].push(v);
+                }
+            }
+            per_target
+        })
+        .collect();
+    let mut members: Vec<Vec<f32>> = (0..targets.len())
+        .map(|t| gathered.iter().flat_map(|g| g[t].iter().copied()).collect())
+        .collect();
+    let at = located.map(|(b, offset)| {
+        let t = targets.binary_search(&b).expect("a target bucket");
+        *members[t].select_nth_unstable_by(offset, f32::total_cmp).1
+    });
+    Some(Selected { count, sum, at })
+}
+
+/// The bucket of `v`: the top 16 bits of its key in `f32::total_cmp`'s order (negative values
+/// with their bits flipped below the positive ones, whose sign bit is set).
+fn bucket(v: f32) -> usize {
+    let bits = v.to_bits();
+    let key = if bits >> 31 == 1 {
+        !bits
+    } else {
+        bits | 1 << 31
+    };
+    (key >> 16) as usize
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What a selection in a vector of all the values finds.
+    fn by_sorting(values: &[Option<f32>], positions: &[usize]) -> Vec<f32> {
+        let mut kept: Vec<f32> = values.iter().flatten().copied().collect();
+        kept.sort_by(f32::total_cmp);
+        positions.iter().map(|&k| kept[k]).collect()
+    }
+
+    #[test]
+    fn selects_what_sorting_finds_over_several_blocks_with_gaps_ties_and_signs() {
+        // Over three blocks: missing values, many repeats (one bucket holding a third of the
+        // values), negative values, zeros of both signs, infinities and tiny magnitudes.
+        let n = 2 * BLOCK + 12_345;
+        let values: Vec<Option<f32>> = (0..n)
+            .map(|i| match i % 11 {
+                0 => None,
+                1..=3 => Some(0.25),
+                4 => Some(-((i % 977) as f32) * 0.013),
+                5 => Some(if i % 2 == 0 { 0.0 } else { -0.0 }),
+                6 if i % 1000 == 6 => Some(f32::INFINITY),
+                6 => Some(1e-30 * (i % 313) as f32),
+                _ => Some(((i * 7919) % 100_003) as f32 * 1e-3),
+            })
+            .collect();
+        let count = values.iter().flatten().count();
+        let got = select_f32(
+            n,
+            |i| values[i],
+            |c| [0, c / 3, c / 2, (c - 1) * 95 / 100, c - 1],
+        )
+        .unwrap();
+        let want = by_sorting(
+            &values,
+            &[0, count / 3, count / 2, (count - 1) * 95 / 100, count - 1],
+        );
+        assert_eq!(got.count, count);
+        for (g, w) in got.at.iter().zip(&want) {
+            assert_eq!(g.to_bits(), w.to_bits(), "{:?} against {want:?}", got.at);
+        }
+        assert!(got.sum.is_infinite());
+    }
+
+    #[test]
+    fn counts_and_sums_finite_values_and_handles_none_and_one() {
+        let values = [Some(3.0f32), None, Some(1.0), Some(2.0)];
+        let got = select_f32(4, |i| values[i], |c| [c / 2, c - 1]).unwrap();
+        assert_eq!((got.count, got.sum, got.at), (3, 6.0, [2.0, 3.0]));
+        assert_eq!(select_f32(4, |_| None, |c| [c]), None);
+        let one = select_f32(1, |_| Some(-7.5), |_| [0, 0]).unwrap();
+        assert_eq!(one.at, [-7.5, -7.5]);
+    }
+}
