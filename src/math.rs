@@ -1,5 +1,6 @@
-//! Small vector math shared by the solve and its evaluation (layer 0: imports nothing of the
-//! crate), so that neither has to reach into the other for it.
+//! Small vector math shared by the solve and its evaluation, and order statistics of many
+//! values ([`select`]) for the evaluation and the maps (layer 0: imports nothing of the
+//! crate), so that none has to reach into another for it.
 
 pub mod select;
 

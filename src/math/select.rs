@@ -1,15 +1,15 @@
-//! Order statistics of tens of millions of computed `f32` values without storing them: the
-//! percentiles of a 16 MP map's per-pixel figures (the report page's colour scales, the albedo
-//! error against a synthetic set's truth). Sorting, or selecting in a vector of the values,
-//! costs a vector of them (190 MB for 48 M albedo errors, all of it fresh memory) and a
-//! selection pass over all of it; here the values are computed twice instead, and counted.
+//! Order statistics of tens of millions of computed values, on every core and without storing
+//! them: the percentiles of a 16 MP map's per-pixel figures (the report page's colour scales,
+//! the errors against a synthetic set's truth). Selecting in a vector of the values costs a
+//! vector of them (190 MB for 48 M albedo errors, all of it fresh memory) and a selection pass
+//! over all of it on one core; here the values are computed twice instead, and counted.
 //!
-//! How: each value has an unsigned key in `f32::total_cmp`'s order. The first pass counts the
-//! values by their key's top 16 bits (a histogram, block by block in parallel); the counts
-//! name the bucket that holds each wanted position. The second pass gathers only the values
-//! in those buckets and selects among them. The result is exactly what
-//! `select_nth_unstable_by(k, f32::total_cmp)` finds in a vector of all the values: values
-//! with one key have one bit pattern.
+//! How: each value (`f32` or `f64`) has an unsigned key in `total_cmp`'s order. The first pass
+//! counts the values by their key's top 16 bits (a histogram, block by block in parallel); the
+//! counts name the bucket that holds each wanted position. The second pass gathers only the
+//! values in those buckets and selects among them. The result is exactly what
+//! `select_nth_unstable_by(k, total_cmp)` finds in a vector of all the values: values with one
+//! key have one bit pattern.
 
 use rayon::prelude::*;
 
@@ -19,17 +19,73 @@ const BLOCK: usize = 1 << 20;
 /// Buckets of the first pass: the key's top 16 bits.
 const BUCKETS: usize = 1 << 16;
 
+/// A value type [`select`] orders: its key in `total_cmp`'s order, and its value as `f64`.
+pub trait Orderable: Copy + Send + Sync {
+    /// The top 16 bits of the key: negative values with their bits flipped below the
+    /// positive ones, whose sign bit is set.
+    fn bucket(self) -> usize;
+    /// `total_cmp`.
+    fn order(&self, other: &Self) -> std::cmp::Ordering;
+    /// The value in double precision, for the sum.
+    fn wide(self) -> f64;
+}
+
+impl Orderable for f32 {
+    fn bucket(self) -> usize {
+        let bits = self.to_bits();
+        let key = if bits >> 31 == 1 {
+            !bits
+        } else {
+            bits | 1 << 31
+        };
+        (key >> 16) as usize
+    }
+    fn order(&self, other: &Self) -> std::cmp::Ordering {
+        self.total_cmp(other)
+    }
+    fn wide(self) -> f64 {
+        self as f64
+    }
+}
+
+impl Orderable for f64 {
+    fn bucket(self) -> usize {
+        let bits = self.to_bits();
+        let key = if bits >> 63 == 1 {
+            !bits
+        } else {
+            bits | 1 << 63
+        };
+        (key >> 48) as usize
+    }
+    fn order(&self, other: &Self) -> std::cmp::Ordering {
+        self.total_cmp(other)
+    }
+    fn wide(self) -> f64 {
+        self
+    }
+}
+
 /// The count, the sum (in double precision, block by block, so the same on every run) and
 /// the values at chosen sorted positions of the values `value(i)` gives for `i` in `0..n`
 /// (`None`: no value at `i`).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Selected<const K: usize> {
+pub struct Selected<T, const K: usize> {
     /// How many values there are.
     pub count: usize,
     /// Their sum.
     pub sum: f64,
     /// The values at the positions asked for, in the order asked.
-    pub at: [f32; K],
+    pub at: [T; K],
+}
+
+/// [`select`] for `f32` values.
+pub fn select_f32<const K: usize>(
+    n: usize,
+    value: impl Fn(usize) -> Option<f32> + Sync,
+    positions: impl FnOnce(usize) -> [usize; K],
+) -> Option<Selected<f32, K>> {
+    select(n, value, positions)
 }
 
 /// The values that `value(i)` gives for `i` in `0..n`, counted and summed, and those at the
@@ -38,11 +94,11 @@ pub struct Selected<const K: usize> {
 ///
 /// # Panics
 /// When `positions` names a position at or past the count.
-pub fn select_f32<const K: usize>(
+pub fn select<T: Orderable, const K: usize>(
     n: usize,
-    value: impl Fn(usize) -> Option<f32> + Sync,
+    value: impl Fn(usize) -> Option<T> + Sync,
     positions: impl FnOnce(usize) -> [usize; K],
-) -> Option<Selected<K>> {
+) -> Option<Selected<T, K>> {
     let blocks = n.div_ceil(BLOCK);
     let block_range = |b: usize| b * BLOCK..((b + 1) * BLOCK).min(n);
     // Pass 1: how many values fall in each bucket, and their sum.
@@ -52,8 +108,8 @@ pub fn select_f32<const K: usize>(
             let mut counts = vec![0u32; BUCKETS];
             let mut sum = 0.0f64;
             for v in block_range(b).filter_map(&value) {
-                counts[bucket(v)] += 1;
-                sum += v as f64;
+                counts[v.bucket()] += 1;
+                sum += v.wide();
             }
             (counts, sum)
         })
@@ -87,38 +143,26 @@ pub fn select_f32<const K: usize>(
     targets.sort_unstable();
     targets.dedup();
     // Pass 2: the values of those buckets, gathered per bucket; then a selection in each.
-    let gathered: Vec<Vec<Vec<f32>>> = (0..blocks)
+    let gathered: Vec<Vec<Vec<T>>> = (0..blocks)
         .into_par_iter()
         .map(|b| {
             let mut per_target = vec![Vec::new(); targets.len()];
             for v in block_range(b).filter_map(&value) {
-                if let Ok(t) = targets.binary_search(&bucket(v)) {
+                if let Ok(t) = targets.binary_search(&v.bucket()) {
                     per_target[t].push(v);
                 }
             }
             per_target
         })
         .collect();
-    let mut members: Vec<Vec<f32>> = (0..targets.len())
+    let mut members: Vec<Vec<T>> = (0..targets.len())
         .map(|t| gathered.iter().flat_map(|g| g[t].iter().copied()).collect())
         .collect();
     let at = located.map(|(b, offset)| {
         let t = targets.binary_search(&b).expect("a target bucket");
-        *members[t].select_nth_unstable_by(offset, f32::total_cmp).1
+        *members[t].select_nth_unstable_by(offset, T::order).1
     });
     Some(Selected { count, sum, at })
-}
-
-/// The bucket of `v`: the top 16 bits of its key in `f32::total_cmp`'s order (negative values
-/// with their bits flipped below the positive ones, whose sign bit is set).
-fn bucket(v: f32) -> usize {
-    let bits = v.to_bits();
-    let key = if bits >> 31 == 1 {
-        !bits
-    } else {
-        bits | 1 << 31
-    };
-    (key >> 16) as usize
 }
 
 #[cfg(test)]
@@ -164,6 +208,15 @@ mod tests {
             assert_eq!(g.to_bits(), w.to_bits(), "{:?} against {want:?}", got.at);
         }
         assert!(got.sum.is_infinite());
+        // The same in double precision, with values that differ below f32's resolution.
+        let wide: Vec<Option<f64>> = (values.iter().enumerate())
+            .map(|(i, v)| v.map(|v| v as f64 + (i % 5) as f64 * 1e-12))
+            .collect();
+        let mut sorted: Vec<f64> = wide.iter().flatten().copied().collect();
+        sorted.sort_by(f64::total_cmp);
+        let at = [count / 7, count / 2, count - 2];
+        let got = select(n, |i| wide[i], |_| at).unwrap();
+        assert_eq!(got.at.map(f64::to_bits), at.map(|k| sorted[k].to_bits()));
     }
 
     #[test]

@@ -342,10 +342,9 @@ fn compare(
     match truth {
         Truth::Surface { normal, albedo } => {
             let (normal, albedo) = region_truth((normal, albedo), &job.region)?;
-            let mut errors = eval::solved_normal_errors_deg(result, &normal);
-            // Both reorder the errors (by selection): neither needs them in pixel order.
-            let comparison = eval::compare_with_errors(result, &mut errors, &albedo);
-            let histogram = Histogram::of_errors_reordering(&mut errors);
+            let errors = eval::solved_normal_errors_deg(result, &normal);
+            let comparison = eval::compare_with_errors(result, &errors, &albedo);
+            let histogram = Histogram::of_errors(&errors);
             Ok(TruthFigures {
                 comparison: TruthComparisonKind::Surface(comparison),
                 histogram,
@@ -354,7 +353,7 @@ fn compare(
         Truth::Normals(normal) => {
             let everywhere = Mask::new(result.width, result.height, true);
             let mask = mask.unwrap_or(&everywhere);
-            let mut errors: Vec<f64> = (eval::normal_errors_deg(result, &normal).into_iter())
+            let errors: Vec<f64> = (eval::normal_errors_deg(result, &normal).into_iter())
                 .zip(&mask.data)
                 .filter_map(|(e, &inside)| e.filter(|_| inside))
                 .collect();
@@ -362,7 +361,7 @@ fn compare(
                 comparison: TruthComparisonKind::Normals(eval::compare_normals_over_mask(
                     result, &normal, mask,
                 )),
-                histogram: Histogram::of_errors_reordering(&mut errors),
+                histogram: Histogram::of_errors(&errors),
             })
         }
     }
