@@ -2,6 +2,8 @@
 //! manifest), read for a solve of its frames: at full resolution as stored, and for 2x2-binned
 //! RAW frames binned the way binning measures the surface.
 
+use rayon::prelude::*;
+
 use crate::capture::CaptureSet;
 use crate::error::{Error, Result};
 use crate::plane::Plane;
@@ -45,28 +47,46 @@ pub fn bin_truth(
     let mut n_out: [Plane; 3] = std::array::from_fn(|_| Plane::new(w, h, 0.0));
     let mut a_out: [Plane; 3] = std::array::from_fn(|_| Plane::new(w, h, 0.0));
     let width = normal[0].width;
-    for v in 0..h {
-        for u in 0..w {
-            let mut scaled = nalgebra::Vector3::zeros();
-            let mut per_channel = [nalgebra::Vector3::<f64>::zeros(); 3];
-            for j in 0..2 {
-                for i in 0..2 {
-                    let at = (2 * v + j) * width + 2 * u + i;
-                    let c = pattern[j][i] as usize;
-                    let share = if c == 1 { 0.5 } else { 1.0 };
-                    let n = nalgebra::Vector3::from_fn(|k, _| normal[k].data[at] as f64);
-                    let a = albedo[c].data[at] as f64;
-                    scaled += n * (LUMINANCE_WEIGHTS[c] * share * a);
-                    per_channel[c] += n * (share * a);
+    if w == 0 {
+        return (n_out, a_out);
+    }
+    // Row by row in parallel: 4 M cells at 16 MP.
+    let [n0, n1, n2] = &mut n_out;
+    let [a0, a1, a2] = &mut a_out;
+    (
+        n0.data.par_chunks_mut(w),
+        n1.data.par_chunks_mut(w),
+        n2.data.par_chunks_mut(w),
+        a0.data.par_chunks_mut(w),
+        a1.data.par_chunks_mut(w),
+        a2.data.par_chunks_mut(w),
+    )
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(v, (n0, n1, n2, a0, a1, a2))| {
+            for u in 0..w {
+                let mut scaled = nalgebra::Vector3::zeros();
+                let mut per_channel = [nalgebra::Vector3::<f64>::zeros(); 3];
+                for j in 0..2 {
+                    for i in 0..2 {
+                        let at = (2 * v + j) * width + 2 * u + i;
+                        let c = pattern[j][i] as usize;
+                        let share = if c == 1 { 0.5 } else { 1.0 };
+                        let n = nalgebra::Vector3::from_fn(|k, _| normal[k].data[at] as f64);
+                        let a = albedo[c].data[at] as f64;
+                        scaled += n * (LUMINANCE_WEIGHTS[c] * share * a);
+                        per_channel[c] += n * (share * a);
+                    }
+                }
+                let unit = scaled.normalize();
+                for (k, out) in [&mut *n0, &mut *n1, &mut *n2].into_iter().enumerate() {
+                    out[u] = unit[k] as f32;
+                }
+                for (k, out) in [&mut *a0, &mut *a1, &mut *a2].into_iter().enumerate() {
+                    out[u] = per_channel[k].dot(&unit) as f32;
                 }
             }
-            let unit = scaled.normalize();
-            for k in 0..3 {
-                n_out[k].data[v * w + u] = unit[k] as f32;
-                a_out[k].data[v * w + u] = per_channel[k].dot(&unit) as f32;
-            }
-        }
-    }
+        });
     (n_out, a_out)
 }
 
