@@ -2,7 +2,7 @@
 //! there, and reading one back with every check a saved set needs before it is solved.
 
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::sync::Mutex;
 
 use rayon::prelude::*;
 
@@ -21,6 +21,10 @@ use crate::raw::{
 };
 use crate::rig::Rig;
 use crate::timing::{Busy, StageClock};
+
+mod read;
+use read::read_and_hash;
+pub use read::{HASH_STAGE, READ_STAGE};
 
 /// The name of the set's copy of its rig, inside the set's folder.
 pub const RIG_FILE: &str = "rig.toml";
@@ -204,47 +208,6 @@ fn checked_inside(dir: &Path, name: &str) -> Result<PathBuf> {
     Ok(path)
 }
 
-/// Reads `path` whole, hashing each chunk as it arrives (a chunk is hashed while it is still in
-/// the CPU's cache, not in a second pass over the whole file); the read and the hash time go to `busy`'s `read` and `hash check`.
-fn read_and_hash(path: &Path, busy: &Busy) -> Result<(Vec<u8>, String)> {
-    use sha2::{Digest, Sha256};
-    use std::io::Read;
-    const CHUNK: usize = 1 << 20;
-    let start = Instant::now();
-    let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let len = file.metadata().map(|m| m.len() as usize).unwrap_or(0);
-    let mut bytes = Vec::with_capacity(len + 1);
-    let mut hasher = Sha256::new();
-    let mut hashing = Duration::ZERO;
-    loop {
-        let done = bytes.len();
-        let n = (&mut file)
-            .take(CHUNK as u64)
-            .read_to_end(&mut bytes)
-            .map_err(|e| Error::io(path, e))?;
-        if n == 0 {
-            break;
-        }
-        let t = Instant::now();
-        hasher.update(&bytes[done..]);
-        hashing += t.elapsed();
-    }
-    let t = Instant::now();
-    let digest: String = hasher
-        .finalize()
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect();
-    hashing += t.elapsed();
-    busy.add(HASH_STAGE, hashing);
-    busy.add(READ_STAGE, start.elapsed().saturating_sub(hashing));
-    Ok((bytes, digest))
-}
-
-/// Stage names of loading a set's frames.
-pub const READ_STAGE: &str = "read";
-pub const HASH_STAGE: &str = "hash check";
-
 /// A set's light frames developed for a solve, and how they were made.
 pub struct LoadedFrames {
     /// The light frames in LED order, as linear RGB planes ready for the solve.
@@ -325,17 +288,19 @@ impl CaptureSet {
     /// Reads a frame's bytes, refusing links (of the file or of a folder on its way) and
     /// checking the recorded SHA-256.
     pub fn read_frame_bytes(&self, entry: &FrameEntry) -> Result<(PathBuf, Vec<u8>)> {
-        self.read_frame_bytes_timed(entry, &Busy::new(&[READ_STAGE, HASH_STAGE]))
+        self.read_frame_bytes_timed(entry, &Busy::new(&[READ_STAGE, HASH_STAGE]), Vec::new())
     }
 
-    /// [`Self::read_frame_bytes`], hashing while reading, the time of each going to `busy`.
+    /// [`Self::read_frame_bytes`] into `buffer`, hashing while reading, the time of each going
+    /// to `busy`.
     fn read_frame_bytes_timed(
         &self,
         entry: &FrameEntry,
         busy: &Busy,
+        buffer: Vec<u8>,
     ) -> Result<(PathBuf, Vec<u8>)> {
         let path = checked_inside(&self.dir, &entry.file)?;
-        let (bytes, actual) = read_and_hash(&path, busy)?;
+        let (bytes, actual) = read_and_hash(&path, busy, buffer)?;
         if actual != entry.sha256 {
             return Err(Error::image(
                 &path,
@@ -401,10 +366,21 @@ impl CaptureSet {
             .into_iter()
             .chain(DECODE_STAGES)
             .collect();
-        // Read, hash check and codec of one frame, its size checked against the manifest.
+        // Read, hash check and codec of one frame, its size checked against the manifest; read
+        // into a buffer an earlier frame is done with (fresh pages cost a fault and zeroing).
+        let spare: Mutex<Vec<Vec<u8>>> = Mutex::new(Vec::new());
         let code_one = |entry: &FrameEntry, busy: &Busy| -> Result<(PathBuf, Coded)> {
-            let (path, bytes) = self.read_frame_bytes_timed(entry, busy)?;
-            let coded = decode_codec(bytes, &path, encoding, &image.levels, busy)?;
+            let buffer = spare
+                .lock()
+                .expect("not poisoned")
+                .pop()
+                .unwrap_or_default();
+            let (path, bytes) = self.read_frame_bytes_timed(entry, busy, buffer)?;
+            let (coded, bytes) = decode_codec(bytes, &path, encoding, &image.levels, busy);
+            if bytes.capacity() > 0 {
+                spare.lock().expect("not poisoned").push(bytes);
+            }
+            let coded = coded?;
             let (w, h) = coded.stored_size();
             if (w, h) != (image.width, image.height) {
                 return Err(Error::image(

@@ -102,23 +102,37 @@ pub fn read_raw(path: &Path) -> Result<DecodedRaw> {
 
 /// Decodes a RAW file already in memory; `path` names it in errors.
 pub fn decode_raw(bytes: Vec<u8>, path: &Path) -> Result<DecodedRaw> {
+    decode_raw_keeping(bytes, path).0
+}
+
+/// [`decode_raw`], handing back the buffer `bytes` came in once the decoder is done with it,
+/// for the next file's bytes (a 16 MP frame's 60 MB of fresh memory spared); empty where the
+/// decoder still holds it.
+pub fn decode_raw_keeping(bytes: Vec<u8>, path: &Path) -> (Result<DecodedRaw>, Vec<u8>) {
     if bytes.is_empty() {
-        return Err(Error::image(path, "is empty (0 bytes): not a RAW file"));
+        let err = Error::image(path, "is empty (0 bytes): not a RAW file");
+        return (Err(err), bytes);
     }
-    super::guard::check_structure(&bytes)
-        .map_err(|m| Error::image(path, format!("is corrupt: {m}")))?;
-    let source = RawSource::new_from_shared_vec(Arc::new(bytes)).with_path(path);
-    DECODING.with(|d| d.set(true));
-    let decoded = catch_unwind(AssertUnwindSafe(|| decode_source(&source)));
-    DECODING.with(|d| d.set(false));
-    match decoded {
+    if let Err(m) = super::guard::check_structure(&bytes) {
+        return (Err(Error::image(path, format!("is corrupt: {m}"))), bytes);
+    }
+    let shared = Arc::new(bytes);
+    let decoded = {
+        let source = RawSource::new_from_shared_vec(Arc::clone(&shared)).with_path(path);
+        DECODING.with(|d| d.set(true));
+        let decoded = catch_unwind(AssertUnwindSafe(|| decode_source(&source)));
+        DECODING.with(|d| d.set(false));
+        decoded
+    };
+    let result = match decoded {
         Ok(Ok((image, meta))) => to_mosaic(image, meta).map_err(|m| Error::image(path, m)),
         Ok(Err(message)) => Err(Error::image(path, message)),
         Err(_) => Err(Error::image(
             path,
             "the RAW decoder failed on this file (it is corrupt or of an unsupported kind)",
         )),
-    }
+    };
+    (result, Arc::try_unwrap(shared).unwrap_or_default())
 }
 
 /// Whether `bytes` are a camera RAW file rawler can read, and the raw image size its header

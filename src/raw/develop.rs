@@ -9,7 +9,7 @@ use serde::Serialize;
 
 use rayon::prelude::*;
 
-use super::decode::{decode_raw, DecodedRaw, RawMeta};
+use super::decode::{decode_raw_keeping, DecodedRaw, RawMeta};
 use super::linear::{decode_dn_frame, Levels};
 use super::mosaic::{subtract_dark, LinearMosaic, Resolution};
 use super::pass::{self, LinearPass, SampleCounts};
@@ -117,7 +117,7 @@ pub fn decode_frame(
 ) -> Result<DecodedFrame> {
     // Untimed: the stages go to a clock nobody reads.
     let busy = Busy::new(&DECODE_STAGES);
-    let coded = decode_codec(bytes, path, encoding, dn16_levels, &busy)?;
+    let coded = decode_codec(bytes, path, encoding, dn16_levels, &busy).0?;
     finish_decode(coded, path, RawPrep::default(), &busy)
 }
 
@@ -172,32 +172,37 @@ impl Coded {
 }
 
 /// Runs a frame's codec (rawler, or the dn16 decoder, which linearises as it goes), its time
-/// going to `busy`.
+/// going to `busy`; hands back the buffer `bytes` came in (empty where the codec still holds
+/// it), for the next frame's bytes.
 pub fn decode_codec(
     bytes: Vec<u8>,
     path: &Path,
     encoding: Encoding,
     dn16_levels: &Levels,
     busy: &Busy,
-) -> Result<Coded> {
+) -> (Result<Coded>, Vec<u8>) {
     match encoding {
         Encoding::Dn16 => {
-            let (frame, (width, height)) = busy.time(DN16_DECODE_STAGE, || {
+            let decoded = busy.time(DN16_DECODE_STAGE, || {
                 decode_dn_frame(&bytes, path, dn16_levels)
-            })?;
-            Ok(Coded::Done(Box::new(DecodedFrame {
-                data: FrameData::Rgb(frame),
-                meta: None,
-                levels: *dn16_levels,
-                cfa_pattern: None,
-                stored_size: (width, height),
-                camera_to_srgb: None,
-                counts: SampleCounts::default(),
-            })))
+            });
+            let coded = decoded.map(|(frame, (width, height))| {
+                Coded::Done(Box::new(DecodedFrame {
+                    data: FrameData::Rgb(frame),
+                    meta: None,
+                    levels: *dn16_levels,
+                    cfa_pattern: None,
+                    stored_size: (width, height),
+                    camera_to_srgb: None,
+                    counts: SampleCounts::default(),
+                }))
+            });
+            (coded, bytes)
         }
-        Encoding::Raw => Ok(Coded::Raw(Box::new(
-            busy.time("decode", || decode_raw(bytes, path))?,
-        ))),
+        Encoding::Raw => {
+            let (raw, bytes) = busy.time("decode", || decode_raw_keeping(bytes, path));
+            (raw.map(|raw| Coded::Raw(Box::new(raw))), bytes)
+        }
     }
 }
 
