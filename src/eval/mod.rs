@@ -15,7 +15,7 @@ pub use run::{evaluate, EvalOptions, EvalReport, EvalSet, Row};
 use nalgebra::Vector3;
 use serde::Serialize;
 
-use crate::math::select::{select, select_f32};
+use crate::math::select::{select, Orderable};
 use crate::plane::Plane;
 use crate::solve::{PixelStatus, SolveResult};
 
@@ -51,21 +51,26 @@ impl Stats {
             max,
         }
     }
-}
 
-impl Stats {
     /// [`Stats::of`] on every core, leaving `values` as they are: for the tens of millions of
     /// per-pixel errors of a 16 MP solve. The same order statistics; the mean is summed block
     /// by block, so it may differ from [`Stats::of`]'s in the last digits of a double.
     pub fn of_parallel(values: &[f64]) -> Stats {
+        Stats::by_selection(values.len(), |i| Some(values[i]))
+    }
+
+    /// The statistics of the values `value(i)` gives for `i` in `0..n`, computed twice and
+    /// never stored ([`select`]): the order statistics [`Stats::of`] finds in a vector of
+    /// them, the mean summed block by block.
+    fn by_selection<T: Orderable>(n: usize, value: impl Fn(usize) -> Option<T> + Sync) -> Stats {
         let positions = |n: usize| [quantile_position(n, 0.5), quantile_position(n, 0.95), n - 1];
-        match select(values.len(), |i| Some(values[i]), positions) {
+        match select(n, value, positions) {
             None => Stats::default(),
             Some(s) => Stats {
                 mean: s.sum / s.count as f64,
-                median: s.at[0],
-                p95: s.at[1],
-                max: s.at[2],
+                median: s.at[0].wide(),
+                p95: s.at[1].wide(),
+                max: s.at[2].wide(),
             },
         }
     }
@@ -209,16 +214,7 @@ fn albedo_error_stats(result: &SolveResult, albedo: &[Plane; 3]) -> Stats {
             ((result.albedo[c].data[i] as f64 - truth).abs() / truth) as f32
         })
     };
-    let positions = |n: usize| [quantile_position(n, 0.5), quantile_position(n, 0.95), n - 1];
-    match select_f32(3 * result.status.len(), error, positions) {
-        None => Stats::default(),
-        Some(s) => Stats {
-            mean: s.sum / s.count as f64,
-            median: s.at[0] as f64,
-            p95: s.at[1] as f64,
-            max: s.at[2] as f64,
-        },
-    }
+    Stats::by_selection(3 * result.status.len(), error)
 }
 
 /// The sorted position of quantile `q` among `n` values: `round(q (n - 1))`.

@@ -79,17 +79,8 @@ pub struct Selected<T, const K: usize> {
     pub at: [T; K],
 }
 
-/// [`select`] for `f32` values.
-pub fn select_f32<const K: usize>(
-    n: usize,
-    value: impl Fn(usize) -> Option<f32> + Sync,
-    positions: impl FnOnce(usize) -> [usize; K],
-) -> Option<Selected<f32, K>> {
-    select(n, value, positions)
-}
-
 /// The values that `value(i)` gives for `i` in `0..n`, counted and summed, and those at the
-/// ascending sorted positions (by `f32::total_cmp`) that `positions` names given the count;
+/// ascending sorted positions (by `total_cmp`) that `positions` names given the count;
 /// `None` when there is no value. `value` is called twice per index, from several threads.
 ///
 /// # Panics
@@ -193,7 +184,7 @@ mod tests {
             })
             .collect();
         let count = values.iter().flatten().count();
-        let got = select_f32(
+        let got = select(
             n,
             |i| values[i],
             |c| [0, c / 3, c / 2, (c - 1) * 95 / 100, c - 1],
@@ -222,10 +213,10 @@ mod tests {
     #[test]
     fn counts_and_sums_finite_values_and_handles_none_and_one() {
         let values = [Some(3.0f32), None, Some(1.0), Some(2.0)];
-        let got = select_f32(4, |i| values[i], |c| [c / 2, c - 1]).unwrap();
+        let got = select(4, |i| values[i], |c| [c / 2, c - 1]).unwrap();
         assert_eq!((got.count, got.sum, got.at), (3, 6.0, [2.0, 3.0]));
-        assert_eq!(select_f32(4, |_| None, |c| [c]), None);
-        let one = select_f32(1, |_| Some(-7.5), |_| [0, 0]).unwrap();
+        assert_eq!(select::<f32, 1>(4, |_| None, |c| [c]), None);
+        let one = select(1, |_| Some(-7.5), |_| [0, 0]).unwrap();
         assert_eq!(one.at, [-7.5, -7.5]);
     }
 }

@@ -13,7 +13,7 @@ use super::relight::{linear_to_srgb8, RelightTextures};
 use crate::error::{Error, Result};
 use crate::io::read_exr;
 use crate::maps::encode::{srgb_to_linear, NormalConvention};
-use crate::math::select::select_f32;
+use crate::math::select::select;
 use crate::plane::Plane;
 use crate::solve::{PixelStatus, SolveResult};
 
@@ -410,7 +410,7 @@ pub const NO_VALUE: [u8; 3] = [30, 30, 30];
 pub fn scale_max(plane: &Plane, maps: &FullMaps) -> f32 {
     let value = |i: usize| Some(plane.data[i]).filter(|v| maps.solved(i) && v.is_finite());
     let p99 = |n: usize| [((n - 1) as f64 * 0.99) as usize];
-    match select_f32(plane.data.len(), value, p99) {
+    match select(plane.data.len(), value, p99) {
         Some(s) if s.at[0] > 0.0 => s.at[0],
         _ => 1.0,
     }
