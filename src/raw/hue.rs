@@ -12,14 +12,12 @@
 //! flank is another material (a patch one or two pixels wide, such as a hole in the weave),
 //! the own channel there is taken as the pixel's own.
 
-use rayon::prelude::*;
-
 mod rows;
 
 use self::rows::{Candidates, SplitRow};
 use super::chroma::smooth_chroma;
 use super::mosaic::{mirror, GREEN};
-use super::shading::SiteFit;
+use super::shading::{SiteFit, SiteRows};
 use crate::math::exp_neg;
 use crate::plane::RgbPlanes;
 
@@ -36,14 +34,15 @@ const FLANK_CONTINUES: f32 = 3.0 * CONTINUITY_SCALE;
 const NORMAL_WEIGHT: f32 = (CONTINUITY_SCALE / 0.2) * (CONTINUITY_SCALE / 0.2);
 
 /// Per pixel, each channel's ratio to the pixel's own channel (1 for the own channel), from
-/// `reflectance` laid out as `pattern`, then averaged over the pixels of the same chroma around
-/// (see [`smooth_chroma`]). A pixel whose own reflectance is not positive gets
-/// ratios of 0 (it is black: its missing channels are 0 too).
+/// the sites' reflectances laid out as `pattern` (`sites`, read a row at a time),
+/// then averaged over the pixels of the same chroma around (see [`smooth_chroma`]). A pixel
+/// whose own reflectance is not positive gets ratios of 0 (it is black: its missing channels
+/// are 0 too).
 pub fn colour_ratios(
     width: usize,
     height: usize,
     pattern: [[u8; 2]; 2],
-    sites: &[SiteFit],
+    sites: &(impl SiteRows + ?Sized),
 ) -> RgbPlanes {
     let mut out = ratios_along(width, height, pattern, sites);
     smooth_chroma(pattern, &mut out);
@@ -56,20 +55,21 @@ fn ratios_along(
     width: usize,
     height: usize,
     pattern: [[u8; 2]; 2],
-    sites: &[SiteFit],
+    sites: &(impl SiteRows + ?Sized),
 ) -> RgbPlanes {
     let (w, h) = (width, height);
     let mut out = RgbPlanes::new(w, h);
-    // Each site's log reflectance, once: the continuity test compares log ratios of sites,
-    // and taking the logarithm per comparison cost most of this function's time.
-    let logs: Vec<f32> = sites.par_iter().map(|s| s.albedo.ln()).collect();
-    let at = |x: isize, y: isize| {
-        let i = mirror(y, h) * w + mirror(x, w);
-        (&sites[i], logs[i])
-    };
-    // Bands of rows: each keeps the five rows of sites around the one it works on split by
-    // column parity (see `rows`), and moves them on one row at a time.
+    // Bands of rows: each fits the sites of its rows and the two either side of it as it
+    // goes, and keeps the five rows around the one it works on (a pixel's neighbours are at
+    // most two sites away, and stay within those when mirrored at the border), as they are
+    // and split by column parity (see `rows`), moving them on one row at a time.
     out.par_bands_mut(BAND_ROWS, |y0, planes| {
+        let mut kept: [Vec<SiteFit>; 5] = std::array::from_fn(|_| vec![SiteFit::BLACK; w]);
+        // Each kept site's log reflectance, once: the continuity test compares log ratios
+        // of sites, and taking the logarithm per comparison cost most of this function's time.
+        let mut logs: [Vec<f32>; 5] = std::array::from_fn(|_| vec![0.0; w]);
+        let mut scratch = Default::default();
+        let mut next_fit = y0.saturating_sub(2);
         let mut split: [SplitRow; 5] = Default::default();
         let mut candidates = Candidates::default();
         let mut next_split = 0;
@@ -77,6 +77,18 @@ fn ratios_along(
         let band = r.chunks_mut(w).zip(g.chunks_mut(w)).zip(b.chunks_mut(w));
         for (y, ((r, g), b)) in (y0..).zip(band) {
             let mut planes = [r, g, b];
+            for row in next_fit..(y + 3).min(h) {
+                let k = row % 5;
+                sites.site_row(row, &mut kept[k], &mut scratch);
+                for (log, site) in logs[k].iter_mut().zip(&kept[k]) {
+                    *log = site.albedo.ln();
+                }
+            }
+            next_fit = (y + 3).min(h);
+            let at = |x: isize, y: isize| {
+                let (k, i) = (mirror(y, h) % 5, mirror(x, w));
+                (&kept[k][i], logs[k][i])
+            };
             if y < 2 || y + 2 >= h {
                 for x in 0..w {
                     ratios_at(&at, pattern, (x, y), &mut planes);
@@ -84,8 +96,7 @@ fn ratios_along(
                 continue;
             }
             for row in next_split.max(y - 2)..=y + 2 {
-                let i = row * w..(row + 1) * w;
-                split[row % 5].fill(&sites[i.clone()], &logs[i]);
+                split[row % 5].fill(&kept[row % 5], &logs[row % 5]);
             }
             next_split = y + 3;
             let rows = std::array::from_fn(|k| &split[(y - 2 + k) % 5]);
@@ -109,8 +120,8 @@ fn ratios_along(
 }
 
 /// Rows per band of [`colour_ratios`]'s parallel work: the four rows of sites around a band
-/// are split once more than its own.
-const BAND_ROWS: usize = 32;
+/// are fitted and split once more than its own (a sixteenth more work at 64).
+const BAND_ROWS: usize = 64;
 
 /// Pixel `(x, y)`'s ratios into `planes` (its row of each), through `at` (mirrored at the
 /// border): the reference that `rows` computes the interior by.
@@ -331,7 +342,7 @@ mod tests {
                 }
             })
             .collect();
-        let ratios = colour_ratios(w, h, pattern, &sites);
+        let ratios = colour_ratios(w, h, pattern, sites.as_slice());
         let blue_over_green = ratios.channels()[2].data[4 * w + 9];
         // The thread's direction weighs exp(-2 (1 - cos 20 deg) NORMAL_WEIGHT / 0.1^2) =
         // exp(-3.0) = 0.049 of the hole's, with ratio 0.07 / 0.05: 1.9 % off; the chroma
@@ -366,7 +377,7 @@ mod tests {
                         SiteFit { albedo, normal }
                     })
                     .collect();
-                let got = ratios_along(w, h, pattern, &sites);
+                let got = ratios_along(w, h, pattern, sites.as_slice());
                 let logs: Vec<f32> = sites.iter().map(|s| s.albedo.ln()).collect();
                 let at = |x: isize, y: isize| {
                     let i = mirror(y, h) * w + mirror(x, w);

@@ -193,7 +193,7 @@ pub struct SiteFit {
 }
 
 impl SiteFit {
-    const BLACK: SiteFit = SiteFit {
+    pub(super) const BLACK: SiteFit = SiteFit {
         albedo: 0.0,
         normal: [0.0, 0.0, 1.0],
     };
@@ -238,7 +238,131 @@ impl SiteFit {
 /// the sites' white-balanced sums over the stack: a site whose sum is at most `floor` is black
 /// (0), and one whose fit is not determined (fewer than three usable samples, or shading
 /// vectors too close to a plane) takes its sum over the shading a flat site would have, on
-/// the same scale. Row-major, like the mosaic.
+/// the same scale.
+///
+/// Fits a row at a time ([`SiteRows`]): the demosaic fits the rows it is about to read, and
+/// keeps the five it reads, rather than every site up front, which held 16 bytes a site
+/// (257 MB at 16 MP, every page of it faulted in and zeroed by the kernel, then read back
+/// from memory) for a pass that reads each row within two rows of where it is.
+pub struct SiteFitter<'a> {
+    frames: &'a [LinearMosaic],
+    /// White balance as a product: 1 / colour, per frame and channel.
+    inverse: Vec<[f64; 3]>,
+    field: &'a ShadingField,
+    sums: &'a [f32],
+    floor: f32,
+}
+
+impl<'a> SiteFitter<'a> {
+    /// The fitter of `frames` under illuminants `colours` (one per frame), shaded as `field`
+    /// says, with the stack's white-balanced `sums` (row-major, like the mosaic).
+    pub fn new(
+        frames: &'a [LinearMosaic],
+        colours: &[[f32; 3]],
+        field: &'a ShadingField,
+        sums: &'a [f32],
+        floor: f32,
+    ) -> Self {
+        SiteFitter {
+            frames,
+            inverse: colours.iter().map(|g| g.map(|v| 1.0 / v as f64)).collect(),
+            field,
+            sums,
+            floor,
+        }
+    }
+
+    /// Row `y`'s sites into `row` (every one written); `sums_of_row` is scratch kept between
+    /// rows.
+    fn fit_row(&self, y: usize, row: &mut [SiteFit], sums_of_row: &mut RowSums) {
+        let (frames, field, inverse) = (self.frames, self.field, &self.inverse);
+        let w = frames[0].width;
+        let pattern = frames[0].pattern;
+        let n = frames.len();
+        let nodes = field.row_nodes(y);
+        let cells: Vec<RowCell> = (0..field.nx - 1)
+            .map(|i| RowCell::new(&nodes[i * n..(i + 1) * n], &nodes[(i + 1) * n..(i + 2) * n]))
+            .collect();
+        sums_of_row.accumulate(frames, inverse, field, &cells, y);
+        for (c, cell) in cells.iter().enumerate() {
+            let first = c * field.step;
+            let last = if c + 1 == cells.len() {
+                w
+            } else {
+                (first + field.step).min(w)
+            };
+            let (lo, hi) = (first, ((c + 1) * field.step).min(field.width - 1));
+            let sums = &self.sums[y * w + first..y * w + last];
+            fit_run(
+                cell,
+                (lo, hi),
+                first,
+                sums_of_row,
+                sums,
+                &mut row[first..last],
+            );
+        }
+        // Black sites, and sites saturated in some frame (fitted to the other frames).
+        let mut samples = Vec::with_capacity(n);
+        for (x, site) in row.iter_mut().enumerate() {
+            let i = y * w + x;
+            if self.sums[i] <= self.floor {
+                *site = SiteFit::BLACK;
+                continue;
+            }
+            if !sums_of_row.saturated[x] {
+                continue;
+            }
+            let (c, t) = field.locate(x, field.nx, field.width);
+            let cell = &cells[c];
+            let own = pattern[y % 2][x % 2] as usize;
+            let value = |k: usize| frames[k].values[i] as f64 * inverse[k][own];
+            samples.clear();
+            samples.extend(
+                (0..n)
+                    .filter(|&k| !frames[k].saturated[i])
+                    .map(|k| (cell.vector(k, t), value(k))),
+            );
+            let fit = fit_scaled_normal(samples.iter().map(|(s, v)| (s, *v)));
+            let flat = cell.flat[0] + t * cell.flat[1];
+            *site = SiteFit::from_fit(fit, self.sums[i], flat);
+        }
+    }
+}
+
+/// Where the demosaic reads its sites' fits from, a row at a time: fitted as they are needed
+/// ([`SiteFitter`]) or already fitted (a slice of every site, row-major).
+pub trait SiteRows: Sync {
+    /// Buffers carried from one row to the next.
+    type Scratch: Default;
+
+    /// Row `y`'s sites into `row` (as many as it holds: the mosaic's width).
+    fn site_row(&self, y: usize, row: &mut [SiteFit], scratch: &mut Self::Scratch);
+}
+
+/// [`SiteFitter`]'s buffers for a row's fit.
+#[derive(Default)]
+pub struct FitScratch(RowSums);
+
+impl SiteRows for SiteFitter<'_> {
+    type Scratch = FitScratch;
+
+    fn site_row(&self, y: usize, row: &mut [SiteFit], scratch: &mut FitScratch) {
+        self.fit_row(y, row, &mut scratch.0);
+    }
+}
+
+impl SiteRows for [SiteFit] {
+    type Scratch = ();
+
+    fn site_row(&self, y: usize, row: &mut [SiteFit], _: &mut ()) {
+        let w = row.len();
+        row.copy_from_slice(&self[y * w..(y + 1) * w]);
+    }
+}
+
+/// Every site's fit ([`SiteFitter`]), row-major: the whole mosaic at once, rows in parallel.
+#[cfg(test)]
 pub fn site_albedos(
     frames: &[LinearMosaic],
     colours: &[[f32; 3]],
@@ -247,65 +371,12 @@ pub fn site_albedos(
     floor: f32,
 ) -> Vec<SiteFit> {
     let (w, h) = (frames[0].width, frames[0].height);
-    let pattern = frames[0].pattern;
-    let n = frames.len();
-    // White balance as a product: 1 / colour, per frame and channel.
-    let inverse: Vec<[f64; 3]> = colours.iter().map(|g| g.map(|v| 1.0 / v as f64)).collect();
-    // Prefilled in parallel: `vec![SiteFit::BLACK; n]` (not zero bits, so not calloc) wrote
-    // all of it, and took its page faults, on one thread: 257 MB at 16 MP, most of a second
-    // with the other core idle.
-    let mut out: Vec<SiteFit> = (0..w * h).into_par_iter().map(|_| SiteFit::BLACK).collect();
+    let fitter = SiteFitter::new(frames, colours, field, sums, floor);
+    let mut out = vec![SiteFit::BLACK; w * h];
     out.par_chunks_mut(w)
         .enumerate()
         .for_each_init(RowSums::default, |sums_of_row, (y, row)| {
-            let nodes = field.row_nodes(y);
-            let cells: Vec<RowCell> = (0..field.nx - 1)
-                .map(|i| RowCell::new(&nodes[i * n..(i + 1) * n], &nodes[(i + 1) * n..(i + 2) * n]))
-                .collect();
-            sums_of_row.accumulate(frames, &inverse, field, &cells, y);
-            for (c, cell) in cells.iter().enumerate() {
-                let first = c * field.step;
-                let last = if c + 1 == cells.len() {
-                    w
-                } else {
-                    (first + field.step).min(w)
-                };
-                let (lo, hi) = (first, ((c + 1) * field.step).min(field.width - 1));
-                let sums = &sums[y * w + first..y * w + last];
-                fit_run(
-                    cell,
-                    (lo, hi),
-                    first,
-                    sums_of_row,
-                    sums,
-                    &mut row[first..last],
-                );
-            }
-            // Black sites, and sites saturated in some frame (fitted to the other frames).
-            let mut samples = Vec::with_capacity(n);
-            for (x, site) in row.iter_mut().enumerate() {
-                let i = y * w + x;
-                if sums[i] <= floor {
-                    *site = SiteFit::BLACK;
-                    continue;
-                }
-                if !sums_of_row.saturated[x] {
-                    continue;
-                }
-                let (c, t) = field.locate(x, field.nx, field.width);
-                let cell = &cells[c];
-                let own = pattern[y % 2][x % 2] as usize;
-                let value = |k: usize| frames[k].values[i] as f64 * inverse[k][own];
-                samples.clear();
-                samples.extend(
-                    (0..n)
-                        .filter(|&k| !frames[k].saturated[i])
-                        .map(|k| (cell.vector(k, t), value(k))),
-                );
-                let fit = fit_scaled_normal(samples.iter().map(|(s, v)| (s, *v)));
-                let flat = cell.flat[0] + t * cell.flat[1];
-                *site = SiteFit::from_fit(fit, sums[i], flat);
-            }
+            fitter.fit_row(y, row, sums_of_row)
         });
     out
 }
@@ -564,12 +635,15 @@ mod tests {
             .collect()
     }
 
-    #[test]
-    fn the_per_cell_fit_equals_the_fit_by_definition() {
+    /// A `w x h` RGGB stack of random samples under lights whose direction and power change
+    /// across the mosaic (near lights), one site in twelve saturated per frame: the frames,
+    /// their illuminants' colours, the shading field and the sites' sums.
+    fn random_stack(
+        (w, h): (usize, usize),
+        seed: u64,
+    ) -> (Vec<LinearMosaic>, Vec<[f32; 3]>, ShadingField, Vec<f32>) {
         use rand::{Rng, SeedableRng};
-        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
-        let (w, h) = (37, 23);
-        // Lights whose direction and power change across the mosaic (near lights).
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         let base = lights();
         let field = ShadingField::sample(w, h, 8, |x, y| {
             Ok(base
@@ -587,19 +661,24 @@ mod tests {
         let colours: Vec<[f32; 3]> = (0..base.len())
             .map(|k| [0.9 + 0.02 * k as f32, 1.0, 1.1 - 0.03 * k as f32])
             .collect();
-        let mut frames: Vec<LinearMosaic> = (0..base.len())
+        let frames: Vec<LinearMosaic> = (0..base.len())
             .map(|_| LinearMosaic {
                 width: w,
                 height: h,
                 pattern: [[0, 1], [1, 2]],
                 values: (0..w * h).map(|_| rng.gen_range(0.0..1.0)).collect(),
-                // One site in twelve saturated per frame.
                 saturated: (0..w * h).map(|_| rng.gen_range(0..12) == 0).collect(),
             })
             .collect();
-        let mut sums: Vec<f32> = (0..w * h)
+        let sums: Vec<f32> = (0..w * h)
             .map(|i| frames.iter().map(|f| f.values[i]).sum())
             .collect();
+        (frames, colours, field, sums)
+    }
+
+    #[test]
+    fn the_per_cell_fit_equals_the_fit_by_definition() {
+        let (mut frames, colours, field, mut sums) = random_stack((37, 23), 7);
         sums[5] = 0.0; // a black site
         for frame in &mut frames[2..] {
             frame.saturated[9] = true; // two usable samples: no fit, the flat estimate
@@ -623,6 +702,31 @@ mod tests {
         }
         assert_eq!(got[5], SiteFit::BLACK);
         assert_eq!(got[9].normal, [0.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn ratios_from_rows_fitted_as_they_are_read_equal_those_from_every_site_fitted_first() {
+        use super::super::hue::colour_ratios;
+        // Taller than two of the demosaic's bands, so that bands start mid-mosaic and
+        // refit the rows they share; black sites in runs across band boundaries.
+        let (w, h) = (45, 150);
+        let (frames, colours, field, mut sums) = random_stack((w, h), 11);
+        for i in (0..w * h).step_by(97) {
+            sums[i..(i + 3).min(w * h)].fill(0.0);
+        }
+        let every_site = site_albedos(&frames, &colours, &field, &sums, 1e-3);
+        let want = colour_ratios(w, h, frames[0].pattern, every_site.as_slice());
+        let fitter = SiteFitter::new(&frames, &colours, &field, &sums, 1e-3);
+        let got = colour_ratios(w, h, frames[0].pattern, &fitter);
+        for (c, (got, want)) in got.channels().iter().zip(want.channels()).enumerate() {
+            for (i, (a, b)) in got.data.iter().zip(&want.data).enumerate() {
+                assert_eq!(
+                    a.to_bits(),
+                    b.to_bits(),
+                    "channel {c}, pixel {i}: {a} vs {b}"
+                );
+            }
+        }
     }
 
     #[test]

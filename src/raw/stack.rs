@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use super::hue::colour_ratios;
 use super::mosaic::{bilinear, LinearMosaic, Mosaic, Resolution};
-use super::shading::{site_albedos, ShadingField};
+use super::shading::{ShadingField, SiteFitter};
 use crate::error::{Error, Result};
 use crate::plane::{CfaColour, LightFrame, Mask, Plane, RgbPlanes};
 
@@ -118,9 +118,8 @@ fn develop_full(
     let floor = 1e-5 * frames.len() as f32;
     let ratios = match shading {
         Some(field) => {
-            let albedos = site_albedos(&frames, colours, field, &sum, floor);
-            drop(sum);
-            colour_ratios(w, h, pattern, &albedos)
+            let sites = SiteFitter::new(&frames, colours, field, &sum, floor);
+            colour_ratios(w, h, pattern, &sites)
         }
         None => bilinear_ratios(w, h, pattern, &sum, floor),
     };
