@@ -10,6 +10,8 @@
 //! chroma's own noise, measured on the image (a material's chroma differs from its
 //! neighbour's by far more, tens of percent in some channel).
 
+use std::collections::HashMap;
+
 use rayon::prelude::*;
 
 use super::mosaic::mirror;
@@ -29,62 +31,108 @@ const CHI2_2_99: f32 = 9.21;
 /// Beyond this exponent a weight (below `e^-30`) is left out.
 const CUTOFF: f32 = 30.0;
 
-/// Log chroma, one plane per channel (structure of arrays, so that the window's loop runs
-/// over contiguous values and vectorises). NaN marks a black pixel.
-type Chroma = [Vec<f32>; 3];
+/// Log chroma of one row, one vector per channel (structure of arrays, so that the window's
+/// loop runs over contiguous values and vectorises). NaN marks a black pixel.
+type ChromaRow = [Vec<f32>; 3];
+
+/// Rows per band of [`smooth_chroma`]'s parallel work. A band overwrites its rows' ratios as
+/// it goes, so the chroma of the two rows either side of each band boundary is taken first.
+const BAND_ROWS: usize = 64;
 
 /// Replaces every pixel's colour `ratios` (each channel over the pixel's own, `pattern` giving
 /// the own channel; 1 for it, all 0 for a black pixel) by the ratios of its log chroma averaged
 /// over the window around it, each neighbour weighted by how close its chroma is to the
 /// pixel's. Black pixels keep their ratios and weigh nothing.
+///
+/// The chroma is computed a row at a time as the window reaches it, and only the window's
+/// five rows are kept: chroma planes of the whole image were 192 MB of fresh memory at
+/// 16 MP, for values each read within two rows of their own.
 pub fn smooth_chroma(pattern: [[u8; 2]; 2], ratios: &mut RgbPlanes) {
     let (w, h) = (ratios.width(), ratios.height());
-    let chroma = log_chroma(ratios);
-    let variance = chroma_noise(w, h, &chroma);
+    let variance = chroma_noise(ratios);
     // Weight exp(-d^2 / (2 s^2)) with s^2 = CHI2_2_99 * variance, the 99th percentile of a
     // same-material pair's d^2; a noise-free image (variance 0) averages only identical chroma.
     let inv = 1.0 / (2.0 * CHI2_2_99 * variance).max(f32::MIN_POSITIVE);
-    ratios.par_rows_mut(|y, rows| {
-        let sums = window_sums(&chroma, w, h, y, inv);
-        for x in 0..w {
-            if chroma[0][y * w + x].is_nan() {
-                continue;
-            }
-            let own = pattern[y % 2][x % 2] as usize;
-            let mean: [f32; 3] = std::array::from_fn(|c| sums[c][x] / sums[3][x]);
-            for c in 0..3 {
-                rows[c][x] = if c == own {
-                    1.0
+    let halo = band_halo(ratios);
+    ratios.par_bands_mut(BAND_ROWS, |y0, [r, g, b]| {
+        let band = y0..y0 + r.len() / w.max(1);
+        // The chroma of rows y - 2 ..= y + 2 (those in the image): row k in `kept[k % 5]`.
+        let mut kept: [ChromaRow; 5] = Default::default();
+        let mut next = y0.saturating_sub(2);
+        for y in band.clone() {
+            // A row of this band is read two rows before the band overwrites it.
+            for k in next..(y + 3).min(h) {
+                kept[k % 5] = if band.contains(&k) {
+                    let row = (k - y0) * w..(k - y0 + 1) * w;
+                    chroma_row([&r[row.clone()], &g[row.clone()], &b[row]])
                 } else {
-                    (mean[c] - mean[own]).exp()
+                    halo[&k].clone()
                 };
+            }
+            next = (y + 3).min(h);
+            let window = std::array::from_fn(|k| {
+                let source = &kept[mirror(y as isize + k as isize - 2, h) % 5];
+                source.each_ref().map(Vec::as_slice)
+            });
+            let sums = window_sums(window, inv);
+            let centre = &kept[y % 5];
+            let row = (y - y0) * w..(y - y0 + 1) * w;
+            let mut rows = [&mut r[row.clone()], &mut g[row.clone()], &mut b[row]];
+            for x in 0..w {
+                if centre[0][x].is_nan() {
+                    continue;
+                }
+                let own = pattern[y % 2][x % 2] as usize;
+                let mean: [f32; 3] = std::array::from_fn(|c| sums[c][x] / sums[3][x]);
+                for (c, row) in rows.iter_mut().enumerate() {
+                    row[x] = if c == own {
+                        1.0
+                    } else {
+                        (mean[c] - mean[own]).exp()
+                    };
+                }
             }
         }
     });
 }
 
-/// Each pixel's log ratios less their mean (the own channel's log ratio is 0, so this is the
+/// The chroma of the rows a band of [`smooth_chroma`] reads but does not own, by row: the two
+/// either side of every boundary between bands, taken before any band overwrites them.
+fn band_halo(ratios: &RgbPlanes) -> HashMap<usize, ChromaRow> {
+    let h = ratios.height();
+    let planes = ratios.channels();
+    (BAND_ROWS..h)
+        .step_by(BAND_ROWS)
+        .flat_map(|boundary| boundary - 2..(boundary + 2).min(h))
+        .collect::<Vec<usize>>()
+        .into_par_iter()
+        .map(|k| (k, chroma_row(planes.map(|p| p.row(k)))))
+        .collect()
+}
+
+/// One row's log chroma from its ratios (see [`log_chroma`]).
+fn chroma_row([r, g, b]: [&[f32]; 3]) -> ChromaRow {
+    let mut out: ChromaRow = std::array::from_fn(|_| Vec::with_capacity(r.len()));
+    for ((&r, &g), &b) in r.iter().zip(g).zip(b) {
+        let chroma = log_chroma([r, g, b]);
+        for (o, v) in out.iter_mut().zip(chroma) {
+            o.push(v);
+        }
+    }
+    out
+}
+
+/// A pixel's log ratios less their mean (the own channel's log ratio is 0, so this is the
 /// colour's log with the brightness removed); NaN where the pixel is black.
-fn log_chroma(ratios: &RgbPlanes) -> Chroma {
-    let [r, g, b] = ratios.channels();
-    let n = r.data.len();
-    let mut chroma: Chroma = std::array::from_fn(|_| vec![0.0f32; n]);
-    let [c0, c1, c2] = &mut chroma;
-    c0.par_iter_mut()
-        .zip(c1.par_iter_mut())
-        .zip(c2.par_iter_mut())
-        .enumerate()
-        .for_each(|(i, ((c0, c1), c2))| {
-            let logs = [r.data[i], g.data[i], b.data[i]].map(f32::ln);
-            let out = if logs.iter().all(|l| l.is_finite()) {
-                let mean = (logs[0] + logs[1] + logs[2]) / 3.0;
-                logs.map(|l| l - mean)
-            } else {
-                [f32::NAN; 3]
-            };
-            (*c0, *c1, *c2) = (out[0], out[1], out[2]);
-        });
-    chroma
+#[inline]
+fn log_chroma(ratios: [f32; 3]) -> [f32; 3] {
+    let logs = ratios.map(f32::ln);
+    if logs.iter().all(|l| l.is_finite()) {
+        let mean = (logs[0] + logs[1] + logs[2]) / 3.0;
+        logs.map(|l| l - mean)
+    } else {
+        [f32::NAN; 3]
+    }
 }
 
 /// Interior pixels per strip of [`window_sums`]: a strip's sums, centre and neighbour values
@@ -92,16 +140,15 @@ fn log_chroma(ratios: &RgbPlanes) -> Chroma {
 /// 16 MP row's (140 KB) did not.
 const STRIP: usize = 256;
 
-/// For row `y`: per pixel, the weighted sums of its window's log chroma (three planes) and of
-/// the weights (the fourth), the window mirrored at the borders.
-fn window_sums(chroma: &Chroma, w: usize, h: usize, y: usize, inv: f32) -> [Vec<f32>; 4] {
+/// Per pixel of a row, the weighted sums of its window's log chroma (three vectors) and of
+/// the weights (the fourth); `rows[2 + dy]` is row `y + dy`'s chroma (mirrored at the top and
+/// bottom borders by the caller), the window mirrored at the left and right borders here.
+fn window_sums(rows: [[&[f32]; 3]; 5], inv: f32) -> [Vec<f32>; 4] {
+    let w = rows[2][0].len();
     let mut sums: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0f32; w]);
-    let centre: [&[f32]; 3] = std::array::from_fn(|c| &chroma[c][y * w..(y + 1) * w]);
+    let centre = rows[2];
     let radius = RADIUS as isize;
-    let source_row = |dy: isize| -> [&[f32]; 3] {
-        let row = mirror(y as isize + dy, h) * w;
-        std::array::from_fn(|c| &chroma[c][row..row + w])
-    };
+    let source_row = |dy: isize| rows[(dy + radius) as usize];
     // Adds the neighbours from `source[first..]` to the pixels `pixels`.
     let mut add = |pixels: std::ops::Range<usize>, source: [&[f32]; 3], first: usize| {
         let q = first..first + pixels.len();
@@ -214,16 +261,18 @@ fn accumulate_portable(
 }
 
 /// The variance per degree of freedom of the difference of two pixels' log chroma where they
-/// are of one material, from the squared chroma distances of horizontally adjacent pixels: their median over `2 ln 2` (the median of chi-squared with
-/// two degrees of freedom), robust to the pairs that straddle a colour edge as long as those
-/// are under half. Every fourth row is enough.
-fn chroma_noise(w: usize, h: usize, chroma: &Chroma) -> f32 {
+/// are of one material, from the squared chroma distances of horizontally adjacent pixels:
+/// their median over `2 ln 2` (the median of chi-squared with two degrees of freedom), robust
+/// to the pairs that straddle a colour edge as long as those are under half. Every fourth row
+/// is enough.
+fn chroma_noise(ratios: &RgbPlanes) -> f32 {
+    let (w, h) = (ratios.width(), ratios.height());
+    let planes = ratios.channels();
     let mut d2: Vec<f32> = (0..h)
         .into_par_iter()
         .step_by(4)
         .flat_map_iter(|y| {
-            let row = y * w..(y + 1) * w;
-            let [c0, c1, c2] = chroma.each_ref().map(|c| &c[row.clone()]);
+            let [c0, c1, c2] = chroma_row(planes.map(|p| p.row(y)));
             (1..w).filter_map(move |x| {
                 let d = (c0[x] - c0[x - 1]).powi(2)
                     + (c1[x] - c1[x - 1]).powi(2)
@@ -248,11 +297,11 @@ mod tests {
     /// standard library's exponential.
     fn reference(pattern: [[u8; 2]; 2], ratios: &RgbPlanes) -> RgbPlanes {
         let (w, h) = (ratios.width(), ratios.height());
-        let chroma = log_chroma(ratios);
-        let inv = 1.0 / (2.0 * CHI2_2_99 * chroma_noise(w, h, &chroma)).max(f32::MIN_POSITIVE);
+        let [r, g, b] = ratios.channels();
+        let inv = 1.0 / (2.0 * CHI2_2_99 * chroma_noise(ratios)).max(f32::MIN_POSITIVE);
         let at = |x: isize, y: isize| {
             let i = mirror(y, h) * w + mirror(x, w);
-            [chroma[0][i], chroma[1][i], chroma[2][i]]
+            log_chroma([r.data[i], g.data[i], b.data[i]])
         };
         let mut out = ratios.clone();
         out.par_rows_mut(|y, rows| {
@@ -316,8 +365,17 @@ mod tests {
     #[test]
     fn the_vectorised_window_matches_the_per_pixel_filter() {
         let pattern = [[0, 1], [1, 2]];
-        // 600 wide: interior rows in several strips (STRIP), the last one short.
-        for (w, h) in [(37, 29), (5, 6), (4, 3), (1, 7), (600, 9)] {
+        // 600 wide: interior rows in several strips (STRIP), the last one short. 150 and 130
+        // high: three bands (BAND_ROWS), the last of 22 rows or of 2.
+        for (w, h) in [
+            (37, 29),
+            (5, 6),
+            (4, 3),
+            (1, 7),
+            (600, 9),
+            (41, 150),
+            (9, 130),
+        ] {
             let input = ratios(w, h, pattern);
             let expected = reference(pattern, &input);
             let mut got = input.clone();
