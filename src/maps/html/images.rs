@@ -353,14 +353,15 @@ pub fn relight_textures(maps: &FullMaps, r: &Reduction) -> Option<RelightTexture
     })
 }
 
-/// A class map at display size: each block takes its most common class.
+/// A class map at display size: each block takes its most common class, `class_at(i)` being
+/// pixel i's of the `w x h` full-resolution map (read through a function, so that a caller
+/// masking some pixels copies no 16 MP plane to do it).
 pub fn class_image(
-    plane: &Plane,
+    (w, h): (usize, usize),
+    class_at: impl Fn(usize) -> usize + Sync,
     r: &Reduction,
     colour: impl Fn(u8) -> [u8; 3] + Sync,
 ) -> RgbImage {
-    let (w, h) = (plane.width, plane.height);
-    let class_at = |i: usize| plane.data[i].clamp(0.0, 255.0) as usize;
     par_image(r.width, r.height, |x, y| {
         // The winner is kept as the counts grow (a count only grows, so the running best is
         // the best so far): a display pixel costs its block and a 1 KiB clear, not a scan of
@@ -375,6 +376,11 @@ pub fn class_image(
         }
         colour(best.1 .0 as u8)
     })
+}
+
+/// The class a class map's value stands for (0 to 255; NaN is 0).
+pub fn class_of(value: f32) -> usize {
+    value.clamp(0.0, 255.0) as usize
 }
 
 /// Viridis, sampled at nine points (matplotlib's table), linearly interpolated.
@@ -569,7 +575,7 @@ mod tests {
             width: 1,
             height: 1,
         };
-        let img = class_image(&plane, &r, |c| [c, 0, 0]);
+        let img = class_image((2, 2), |i| class_of(plane.data[i]), &r, |c| [c, 0, 0]);
         assert_eq!(img.get_pixel(0, 0).0, [2, 0, 0]);
     }
 }

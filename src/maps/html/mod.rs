@@ -201,22 +201,33 @@ pub const FIT_CLASSES: [(&str, [u8; 3], &str); 3] = [
     ("sheen", [190, 80, 220], "fitted with the sheen lobe"),
 ];
 
+/// How many pixels of `plane` hold each class below `n` (the solved ones only, with
+/// `solved_only`), counted on every core.
 fn class_counts(
     plane: &crate::plane::Plane,
     maps: &FullMaps,
     solved_only: bool,
     n: usize,
 ) -> Vec<usize> {
-    let mut counts = vec![0usize; n];
-    for (i, &v) in plane.data.iter().enumerate() {
-        if solved_only && !maps.solved(i) {
-            continue;
-        }
-        if v >= 0.0 && (v as usize) < n {
+    use rayon::prelude::*;
+    let count = |mut counts: Vec<usize>, (i, &v): (usize, &f32)| {
+        if (!solved_only || maps.solved(i)) && v >= 0.0 && (v as usize) < n {
             counts[v as usize] += 1;
         }
-    }
-    counts
+        counts
+    };
+    plane
+        .data
+        .par_iter()
+        .enumerate()
+        .fold(|| vec![0usize; n], count)
+        .reduce(
+            || vec![0usize; n],
+            |mut a, b| {
+                a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
+                a
+            },
+        )
 }
 
 fn legend_classes(classes: &[(&str, [u8; 3], &str)], counts: &[usize]) -> String {
@@ -260,9 +271,13 @@ fn class_parts(maps: &FullMaps, r: &Reduction) -> String {
         );
     };
     let mut out = String::new();
-    let status = images::class_image(&conf[0], r, |c| {
-        STATUS_CLASSES.get(c as usize).map_or([0, 0, 0], |s| s.1)
-    });
+    let size = (conf[0].width, conf[0].height);
+    let status = images::class_image(
+        size,
+        |i| images::class_of(conf[0].data[i]),
+        r,
+        |c| STATUS_CLASSES.get(c as usize).map_or([0, 0, 0], |s| s.1),
+    );
     out += &figure(
         "status",
         &img_tag(
@@ -273,17 +288,17 @@ fn class_parts(maps: &FullMaps, r: &Reduction) -> String {
         ),
         &legend_classes(&STATUS_CLASSES, &class_counts(&conf[0], maps, false, 6)),
     );
-    let fit_img = {
-        let mut fit_or_none = conf[1].clone().into_owned();
-        for (i, v) in fit_or_none.data.iter_mut().enumerate() {
-            if !maps.solved(i) {
-                *v = 255.0;
-            }
+    // Unsolved pixels count as class 255, which has no colour of its own: black.
+    let fit_or_none = |i| {
+        if maps.solved(i) {
+            images::class_of(conf[1].data[i])
+        } else {
+            255
         }
-        images::class_image(&fit_or_none, r, |c| {
-            FIT_CLASSES.get(c as usize).map_or([0, 0, 0], |s| s.1)
-        })
     };
+    let fit_img = images::class_image(size, fit_or_none, r, |c| {
+        FIT_CLASSES.get(c as usize).map_or([0, 0, 0], |s| s.1)
+    });
     out += &figure(
         "fit",
         &img_tag(
