@@ -14,6 +14,7 @@ use std::collections::HashMap;
 
 use rayon::prelude::*;
 
+use super::five_rows::FiveRows;
 use super::mosaic::mirror;
 use crate::math::exp_neg;
 use crate::plane::RgbPlanes;
@@ -56,26 +57,23 @@ pub fn smooth_chroma(pattern: [[u8; 2]; 2], ratios: &mut RgbPlanes) {
     let halo = band_halo(ratios);
     ratios.par_bands_mut(BAND_ROWS, |y0, [r, g, b]| {
         let band = y0..y0 + r.len() / w.max(1);
-        // The chroma of rows y - 2 ..= y + 2 (those in the image): row k in `kept[k % 5]`.
-        let mut kept: [ChromaRow; 5] = Default::default();
-        let mut next = y0.saturating_sub(2);
+        let mut kept = FiveRows::<ChromaRow>::starting_at(y0.saturating_sub(2));
         for y in band.clone() {
             // A row of this band is read two rows before the band overwrites it.
-            for k in next..(y + 3).min(h) {
-                kept[k % 5] = if band.contains(&k) {
+            kept.compute_to((y + 3).min(h), |k, chroma| {
+                *chroma = if band.contains(&k) {
                     let row = (k - y0) * w..(k - y0 + 1) * w;
                     chroma_row([&r[row.clone()], &g[row.clone()], &b[row]])
                 } else {
                     halo[&k].clone()
                 };
-            }
-            next = (y + 3).min(h);
+            });
             let window = std::array::from_fn(|k| {
-                let source = &kept[mirror(y as isize + k as isize - 2, h) % 5];
+                let source = kept.row(mirror(y as isize + k as isize - 2, h));
                 source.each_ref().map(Vec::as_slice)
             });
             let sums = window_sums(window, inv);
-            let centre = &kept[y % 5];
+            let centre = kept.row(y);
             let row = (y - y0) * w..(y - y0 + 1) * w;
             let mut rows = [&mut r[row.clone()], &mut g[row.clone()], &mut b[row]];
             for x in 0..w {

@@ -16,6 +16,7 @@ mod rows;
 
 use self::rows::{Candidates, SplitRow};
 use super::chroma::smooth_chroma;
+use super::five_rows::FiveRows;
 use super::mosaic::{mirror, GREEN};
 use super::shading::{SiteFit, SiteRows};
 use crate::math::exp_neg;
@@ -64,30 +65,23 @@ fn ratios_along(
     // most two sites away, and stay within those when mirrored at the border), as they are
     // and split by column parity (see `rows`), moving them on one row at a time.
     out.par_bands_mut(BAND_ROWS, |y0, planes| {
-        let mut kept: [Vec<SiteFit>; 5] = std::array::from_fn(|_| vec![SiteFit::BLACK; w]);
-        // Each kept site's log reflectance, once: the continuity test compares log ratios
-        // of sites, and taking the logarithm per comparison cost most of this function's time.
-        let mut logs: [Vec<f32>; 5] = std::array::from_fn(|_| vec![0.0; w]);
+        let mut kept = FiveRows::<KeptSites>::starting_at(y0.saturating_sub(2));
+        let mut split = FiveRows::<SplitRow>::starting_at(y0.saturating_sub(2));
         let mut scratch = Default::default();
-        let mut next_fit = y0.saturating_sub(2);
-        let mut split: [SplitRow; 5] = Default::default();
         let mut candidates = Candidates::default();
-        let mut next_split = 0;
         let [r, g, b] = planes;
         let band = r.chunks_mut(w).zip(g.chunks_mut(w)).zip(b.chunks_mut(w));
         for (y, ((r, g), b)) in (y0..).zip(band) {
             let mut planes = [r, g, b];
-            for row in next_fit..(y + 3).min(h) {
-                let k = row % 5;
-                sites.site_row(row, &mut kept[k], &mut scratch);
-                for (log, site) in logs[k].iter_mut().zip(&kept[k]) {
-                    *log = site.albedo.ln();
-                }
-            }
-            next_fit = (y + 3).min(h);
+            kept.compute_to((y + 3).min(h), |k, row| {
+                row.sites.resize(w, SiteFit::BLACK);
+                sites.site_row(k, &mut row.sites, &mut scratch);
+                row.logs.clear();
+                row.logs.extend(row.sites.iter().map(|s| s.albedo.ln()));
+            });
             let at = |x: isize, y: isize| {
-                let (k, i) = (mirror(y, h) % 5, mirror(x, w));
-                (&kept[k][i], logs[k][i])
+                let (row, i) = (kept.row(mirror(y, h)), mirror(x, w));
+                (&row.sites[i], row.logs[i])
             };
             if y < 2 || y + 2 >= h {
                 for x in 0..w {
@@ -95,11 +89,10 @@ fn ratios_along(
                 }
                 continue;
             }
-            for row in next_split.max(y - 2)..=y + 2 {
-                split[row % 5].fill(&kept[row % 5], &logs[row % 5]);
-            }
-            next_split = y + 3;
-            let rows = std::array::from_fn(|k| &split[(y - 2 + k) % 5]);
+            split.compute_to(y + 3, |k, row| {
+                row.fill(&kept.row(k).sites, &kept.row(k).logs)
+            });
+            let rows = std::array::from_fn(|k| split.row(y - 2 + k));
             for parity in 0..2 {
                 let own = pattern[y % 2][parity];
                 for c in (0..3).filter(|&c| c != own) {
@@ -117,6 +110,15 @@ fn ratios_along(
         }
     });
     out
+}
+
+/// One row of sites as [`ratios_along`] keeps it: their fits, and each one's log reflectance,
+/// taken once (the continuity test compares log ratios of sites, and taking the logarithm per
+/// comparison cost most of that function's time).
+#[derive(Default)]
+struct KeptSites {
+    sites: Vec<SiteFit>,
+    logs: Vec<f32>,
 }
 
 /// Rows per band of [`colour_ratios`]'s parallel work: the four rows of sites around a band

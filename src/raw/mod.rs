@@ -13,6 +13,7 @@ mod colour;
 mod decode;
 mod develop;
 mod dng;
+mod five_rows;
 mod guard;
 mod hue;
 mod linear;
