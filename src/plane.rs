@@ -2,7 +2,11 @@
 //! order with explicit width and height (DESIGN.md: "masks are explicit, never NaN-as-mask"),
 //! and `Frames`, one RGB image per light, which is what decoding produces and solving consumes.
 
+mod dn;
+
 use rayon::prelude::*;
+
+pub use dn::{Dark, DnSamples};
 
 use crate::error::{Error, Result};
 
@@ -205,6 +209,11 @@ impl RgbPlanes {
         }
     }
 
+    /// Three planes of no samples (a frame that stores its values elsewhere).
+    pub fn empty() -> Self {
+        RgbPlanes::new(0, 0)
+    }
+
     /// The planes in R, G, B order.
     pub fn channels(&self) -> [&Plane; 3] {
         [&self.r, &self.g, &self.b]
@@ -270,6 +279,9 @@ pub struct LightFrame {
     /// How the missing channels follow from each pixel's own sample, for a frame stored as
     /// one CFA sample per pixel (`None`: `rgb` holds all three planes).
     pub cfa: Option<CfaColour>,
+    /// A dn16 frame kept as its 16-bit samples, linearised where read; `rgb`'s planes are
+    /// then empty.
+    pub dn: Option<DnSamples>,
 }
 
 impl LightFrame {
@@ -279,6 +291,27 @@ impl LightFrame {
             rgb,
             saturated,
             cfa: None,
+            dn: None,
+        }
+    }
+
+    /// A dn16 frame kept as its 16-bit samples (see [`DnSamples`]); its `rgb` planes are
+    /// left empty.
+    pub fn from_dn(samples: DnSamples, saturated: Option<Mask>) -> Self {
+        LightFrame {
+            rgb: RgbPlanes::empty(),
+            saturated,
+            cfa: None,
+            dn: Some(samples),
+        }
+    }
+
+    /// The frame with `f32` planes in `rgb` (converted from its dn16 samples where it keeps
+    /// those), for code that reads the planes directly.
+    pub fn with_planes(self) -> Self {
+        match &self.dn {
+            Some(dn) => LightFrame::from_rgb(dn.to_planes(), self.saturated),
+            None => self,
         }
     }
 
@@ -293,26 +326,28 @@ impl LightFrame {
             },
             saturated,
             cfa: Some(cfa),
+            dn: None,
         }
     }
 
     /// Width in pixels.
     pub fn width(&self) -> usize {
-        self.rgb.g.width
+        self.dn.as_ref().map_or(self.rgb.g.width, |d| d.width)
     }
 
     /// Height in pixels.
     pub fn height(&self) -> usize {
-        self.rgb.g.height
+        self.dn.as_ref().map_or(self.rgb.g.height, |d| d.height)
     }
 
     /// The three channels of pixel (`x`, `y`), however the frame stores them.
     #[inline]
     pub fn rgb_at(&self, x: usize, y: usize) -> [f32; 3] {
         let i = y * self.width() + x;
-        match &self.cfa {
-            None => [self.rgb.r.data[i], self.rgb.g.data[i], self.rgb.b.data[i]],
-            Some(cfa) => cfa.rgb(self.rgb.g.data[i], i, cfa.own(x, y)),
+        match (&self.cfa, &self.dn) {
+            (Some(cfa), _) => cfa.rgb(self.rgb.g.data[i], i, cfa.own(x, y)),
+            (None, Some(dn)) => std::array::from_fn(|c| dn.value(c, i)),
+            (None, None) => [self.rgb.r.data[i], self.rgb.g.data[i], self.rgb.b.data[i]],
         }
     }
 
@@ -320,9 +355,10 @@ impl LightFrame {
     /// and the shared ratios otherwise (for the stages that want planes and run on a small or
     /// binned image: cropping, binning, previews).
     pub fn to_planes(&self) -> std::borrow::Cow<'_, RgbPlanes> {
-        match &self.cfa {
-            None => std::borrow::Cow::Borrowed(&self.rgb),
-            Some(_) => {
+        match (&self.cfa, &self.dn) {
+            (None, None) => std::borrow::Cow::Borrowed(&self.rgb),
+            (None, Some(dn)) => std::borrow::Cow::Owned(dn.to_planes()),
+            (Some(_), _) => {
                 std::borrow::Cow::Owned(self.window_planes(0, 0, self.width(), self.height()))
             }
         }
@@ -396,11 +432,23 @@ impl Frames {
     /// Checks that every frame has the frames' size, so the solver can index blindly.
     pub fn validate(&self) -> Result<()> {
         for (k, frame) in self.lights.iter().enumerate() {
-            let planes = match &frame.cfa {
-                None => frame.rgb.channels().to_vec(),
-                Some(cfa) => std::iter::once(&frame.rgb.g)
+            let planes = match (&frame.cfa, &frame.dn) {
+                (None, None) => frame.rgb.channels().to_vec(),
+                (Some(cfa), _) => std::iter::once(&frame.rgb.g)
                     .chain(cfa.ratios.channels())
                     .collect(),
+                (None, Some(dn)) => {
+                    let size = (dn.width, dn.height) == (self.width, self.height);
+                    if !size {
+                        return Err(Error::Invalid(format!(
+                            "frame for light {k} is {}x{}, the capture is {}x{}",
+                            dn.width, dn.height, self.width, self.height
+                        )));
+                    }
+                    dn.check_size()
+                        .map_err(|e| Error::Invalid(format!("frame for light {k} {e}")))?;
+                    Vec::new()
+                }
             };
             for plane in planes {
                 if plane.width != self.width

@@ -171,6 +171,7 @@ fn frames(case: &Case) -> Frames {
                 rgb,
                 saturated: Some(saturated),
                 cfa: None,
+                dn: None,
             }
         })
         .collect();

@@ -6,13 +6,17 @@ use rayon::prelude::*;
 
 use crate::plane::Frames;
 
-/// Bytes of decoded input the solve reads: every colour plane and saturation mask.
+/// Bytes of decoded input the solve reads: every colour plane (`f32`, or 16-bit DN) and
+/// saturation mask.
 pub fn input_bytes(frames: &Frames) -> usize {
     frames
         .lights
         .iter()
         .map(|f| {
             f.rgb.channels().iter().map(|p| p.len()).sum::<usize>() * std::mem::size_of::<f32>()
+                + f.dn
+                    .as_ref()
+                    .map_or(0, |d| d.dn.iter().map(Vec::len).sum::<usize>() * 2)
                 + f.saturated.as_ref().map_or(0, |m| m.data.len())
         })
         .sum()
@@ -31,6 +35,10 @@ pub fn read_all(frames: &Frames) -> f64 {
                 // A CFA frame's empty R and B planes hold nothing to read.
                 for plane in f.rgb.channels().into_iter().filter(|p| !p.data.is_empty()) {
                     sum_row(&plane.data[y * w..(y + 1) * w], &mut acc);
+                }
+                for dn in f.dn.iter().flat_map(|d| &d.dn) {
+                    let sum: u32 = dn[y * w..(y + 1) * w].iter().map(|&v| v as u32).sum();
+                    acc[0] += sum as f32;
                 }
                 if let Some(m) = &f.saturated {
                     count += m.data[y * w..(y + 1) * w].iter().filter(|&&b| b).count();

@@ -425,6 +425,7 @@ fn bin_frames(frames: Frames, step: f64) -> Result<Frames> {
                 rgb: RgbPlanes { r, g, b },
                 saturated,
                 cfa: None,
+                dn: None,
             })
         })
         .collect::<Result<Vec<_>>>()?;

@@ -14,7 +14,8 @@ use crate::error::{Error, Needed, Result};
 use crate::io::read_exr;
 use crate::plane::{LightFrame, Mask, RgbPlanes, SensorWindow};
 use crate::raw::{
-    read_dn_image, read_raw, subtract_dark, Levels, Mosaic, Resolution, SATURATION_MARGIN,
+    read_dn_image, read_raw, subtract_dark, DarkFrame, Levels, Mosaic, Resolution,
+    SATURATION_MARGIN,
 };
 use crate::rig::Rig;
 
@@ -146,6 +147,7 @@ pub fn load_linear(path: &Path, levels: &Levels) -> Result<LightFrame> {
                 rgb,
                 saturated: Some(saturated),
                 cfa: None,
+                dn: None,
             })
         }
         "png" | "tif" | "tiff" => Ok(read_dn_image(path)?.to_light_frame(levels)),
@@ -180,6 +182,7 @@ pub fn load_frames(
             (dark_frame.rgb.width(), dark_frame.rgb.height()),
             &mut Some(size),
         )?;
+        let dark_frame = DarkFrame::of(dark_frame);
         for frame in &mut frames {
             subtract_dark(frame, &dark_frame).map_err(|e| Error::image(dark_path, e))?;
         }

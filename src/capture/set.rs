@@ -12,7 +12,7 @@ use super::manifest::{
 };
 use crate::error::{Error, Result};
 use crate::fsutil::{create_dir_all, record_owned, sha256_hex, write_atomic};
-use crate::plane::Frames;
+use crate::plane::{Frames, LightFrame};
 use crate::progress::Progress;
 use crate::raw::{
     check_consistent, check_plausible, decode_codec, develop_frames_timed, finish_decode, Coded,
@@ -330,12 +330,17 @@ impl CaptureSet {
         options: &DevelopOptions,
         progress: &dyn Progress,
     ) -> Result<LoadedFrames> {
-        self.load_frames_timed(options, progress, &mut StageClock::start())
+        let mut loaded = self.load_frames_timed(options, progress, &mut StageClock::start())?;
+        // For callers that read the planes (calibration): dn16 frames' DN become `f32`.
+        let lights = std::mem::take(&mut loaded.frames.lights);
+        loaded.frames.lights = lights.into_iter().map(LightFrame::with_planes).collect();
+        Ok(loaded)
     }
 
     /// [`Self::load_frames_with`], timing its stages on `clock`: read, hash check, decode and
     /// linearize (interleaved over the frames, one frame per core), dark subtraction, and
-    /// demosaic or binning.
+    /// demosaic or binning. Plain-PNG dn16 frames stay as their DN ([`LightFrame::from_dn`]),
+    /// for the solver, which reads them through `LightFrame`'s accessors.
     pub fn load_frames_timed(
         &self,
         options: &DevelopOptions,

@@ -105,6 +105,7 @@ mod tests {
                         rgb,
                         saturated: None,
                         cfa: None,
+                        dn: None,
                     }
                 })
                 .collect(),

@@ -11,7 +11,7 @@ use rayon::prelude::*;
 
 use super::decode::{decode_raw_keeping, DecodedRaw, RawMeta};
 use super::linear::{decode_dn_frame, Levels};
-use super::mosaic::{subtract_dark, LinearMosaic, Resolution};
+use super::mosaic::{subtract_dark, DarkFrame, LinearMosaic, Resolution};
 use super::pass::{self, LinearPass, SampleCounts};
 use super::shading::ShadingField;
 use super::stack::develop_stack;
@@ -118,7 +118,12 @@ pub fn decode_frame(
     // Untimed: the stages go to a clock nobody reads.
     let busy = Busy::new(&DECODE_STAGES);
     let coded = decode_codec(bytes, path, encoding, dn16_levels, &busy).0?;
-    finish_decode(coded, path, RawPrep::default(), &busy)
+    let mut frame = finish_decode(coded, path, RawPrep::default(), &busy)?;
+    // One frame at a time, for readers of its planes: a dn16 frame's DN become `f32` planes.
+    if let FrameData::Rgb(f) = frame.data {
+        frame.data = FrameData::Rgb(f.with_planes());
+    }
+    Ok(frame)
 }
 
 /// The stages [`decode_codec`] and [`finish_decode`] record: the RAW codec (rawler), the
@@ -310,6 +315,7 @@ pub fn develop_frames_timed(
                 return Err(Error::Invalid("a RAW dark frame in a dn16 set".into()));
             };
             clock.time(DARK_STAGE, || {
+                let dark = DarkFrame::of(dark);
                 rgb.par_iter_mut().try_for_each(|f| subtract_dark(f, &dark))
             })?;
         }
@@ -548,6 +554,7 @@ mod tests {
                 rgb: crate::plane::RgbPlanes::new(2, 2),
                 saturated: None,
                 cfa: None,
+                dn: None,
             }),
             meta: None,
             levels: Levels {

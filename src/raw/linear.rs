@@ -7,7 +7,7 @@ use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{DynamicImage, ImageBuffer, Rgb};
 
 use crate::error::{Error, Result};
-use crate::plane::{LightFrame, Mask, RgbPlanes};
+use crate::plane::{DnSamples, LightFrame, Mask, RgbPlanes};
 use crate::rig::Sensor;
 
 /// Raw digital numbers, RGB interleaved, row-major.
@@ -97,19 +97,61 @@ impl LinearRows {
             rgb: self.rgb,
             saturated: Some(self.saturated),
             cfa: None,
+            dn: None,
         }
+    }
+}
+
+/// A dn16 frame filled row by row from big-endian 16-bit RGB rows, kept as its DN (see
+/// [`DnSamples`]); a pixel is saturated where any channel reached the white level.
+struct DnRows {
+    samples: DnSamples,
+    saturated: Mask,
+    white: f64,
+}
+
+impl DnRows {
+    fn new(width: usize, height: usize, levels: &Levels) -> Self {
+        DnRows {
+            samples: DnSamples::new(width, height, levels.black, levels.white),
+            saturated: Mask::new(width, height, false),
+            white: levels.white,
+        }
+    }
+
+    /// Row `y` from its bytes: six a pixel, R, G, B big-endian (at most `width` pixels read).
+    #[inline]
+    fn row(&mut self, y: usize, bytes: &[u8]) {
+        let w = self.samples.width;
+        let at = y * w..(y + 1) * w;
+        let [r, g, b] = &mut self.samples.dn;
+        // Zipped iterators, not indexing: no bounds check per sample of a 16 MP frame.
+        let outputs = r[at.clone()]
+            .iter_mut()
+            .zip(&mut g[at.clone()])
+            .zip(&mut b[at.clone()])
+            .zip(&mut self.saturated.data[at]);
+        for ((((r, g), b), clipped), px) in outputs.zip(bytes.chunks_exact(6)) {
+            let dn = |k: usize| u16::from_be_bytes([px[2 * k], px[2 * k + 1]]);
+            (*r, *g, *b) = (dn(0), dn(1), dn(2));
+            *clipped = [*r, *g, *b].iter().any(|&v| v as f64 >= self.white);
+        }
+    }
+
+    fn finish(self) -> LightFrame {
+        LightFrame::from_dn(self.samples, Some(self.saturated))
     }
 }
 
 /// A decoded frame and its stored size (width, height).
 pub type SizedFrame = (LightFrame, (usize, usize));
 
-/// Decodes a dn16 frame (a 16-bit RGB PNG or TIFF of raw digital numbers) into linear planes
-/// and returns them with the stored size: [`DnImage::to_light_frame`] of [`decode_dn_image`],
-/// value for value. A plain 16-bit RGB PNG (not interlaced, no transparency) is linearised row
-/// by row as it is inflated, with no whole-image buffer of samples (97 MB at 16 MP, written
-/// and read once more per frame); anything else takes that long way, which also names what
-/// is wrong with the file.
+/// Decodes a dn16 frame (a 16-bit RGB PNG or TIFF of raw digital numbers) and returns it with
+/// the stored size: [`DnImage::to_light_frame`] of [`decode_dn_image`], value for value. A
+/// plain 16-bit RGB PNG (not interlaced, no transparency) is kept as its DN, linearised where
+/// read ([`LightFrame::from_dn`]: half the memory of `f32` planes), filled row by row as it is
+/// inflated; anything else takes that long way to `f32` planes, which also names what is
+/// wrong with the file.
 pub fn decode_dn_frame(bytes: &[u8], path: &Path, levels: &Levels) -> Result<SizedFrame> {
     if let Some(decoded) = png_rows_to_frame(bytes, levels) {
         return decoded.map_err(|e| Error::image(path, e));
@@ -139,20 +181,12 @@ fn png_rows_to_frame(
         return None;
     }
     let (width, height) = (info.width as usize, info.height as usize);
-    let mut frame = LinearRows::new(width, height, levels);
+    let mut frame = DnRows::new(width, height, levels);
     let mut y = 0;
     let decoded = (|| {
         while let Some(row) = reader.next_row()? {
             if y < height {
-                // Six bytes a pixel: R, G, B big-endian.
-                let pixels = row.data().chunks_exact(6).map(|b| {
-                    [
-                        u16::from_be_bytes([b[0], b[1]]),
-                        u16::from_be_bytes([b[2], b[3]]),
-                        u16::from_be_bytes([b[4], b[5]]),
-                    ]
-                });
-                frame.row(y, pixels);
+                frame.row(y, row.data());
             }
             y += 1;
         }
@@ -249,8 +283,9 @@ mod tests {
         let expected = decode_dn_image(&bytes, path)
             .unwrap()
             .to_light_frame(&levels);
+        assert!(frame.dn.is_some(), "a plain PNG keeps its DN");
         let bits = |f: &LightFrame| -> Vec<u32> {
-            f.rgb
+            f.to_planes()
                 .channels()
                 .iter()
                 .flat_map(|p| p.data.iter().map(|v| v.to_bits()))

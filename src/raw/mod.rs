@@ -34,7 +34,8 @@ pub use develop::{
 pub use dng::{encode_dng, DngStorage};
 pub use linear::{decode_dn_frame, decode_dn_image, encode_png16, read_dn_image, DnImage, Levels};
 pub use mosaic::{
-    bilinear, subtract_dark, LinearMosaic, Mosaic, Resolution, BLUE, GREEN, RED, SATURATION_MARGIN,
+    bilinear, subtract_dark, DarkFrame, LinearMosaic, Mosaic, Resolution, BLUE, GREEN, RED,
+    SATURATION_MARGIN,
 };
 pub use pass::{LinearPass, SampleCounts};
 pub use shading::ShadingField;

@@ -23,11 +23,13 @@
 //! (within [`SATURATION_MARGIN`] of full scale, where real sensors stop being linear): any of the
 //! four samples of a binned cell; the own sample at full resolution.
 
+use std::sync::Arc;
+
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::plane::{LightFrame, Mask, Plane, RgbPlanes, SensorWindow};
+use crate::plane::{Dark, LightFrame, Mask, RgbPlanes, SensorWindow};
 
 /// Index of the red channel (the channel indices are those of `RgbPlanes`).
 pub const RED: u8 = 0;
@@ -326,6 +328,7 @@ pub(super) fn bin_cells<A: Send>(
         rgb,
         saturated: Some(saturated),
         cfa: None,
+        dn: None,
     };
     (frame, accs)
 }
@@ -379,27 +382,52 @@ pub fn bilinear(width: usize, height: usize, pattern: [[u8; 2]; 2], values: &[f3
     rgb
 }
 
-/// Subtracts a dark frame (developed the same way) from a light frame, pixel by pixel. A pixel
-/// saturated in either frame is saturated in the result.
-pub fn subtract_dark(frame: &mut LightFrame, dark: &LightFrame) -> Result<()> {
-    let (w, h) = (frame.rgb.width(), frame.rgb.height());
-    if dark.rgb.width() != w || dark.rgb.height() != h {
+/// A dark frame and its saturation, to subtract from light frames developed the same way.
+/// It is shared with the light frames kept as DN ([`LightFrame::from_dn`]), which subtract it
+/// as their values are read.
+#[derive(Clone, Debug)]
+pub struct DarkFrame {
+    /// The dark frame's values, as DN or linear planes.
+    pub values: Arc<Dark>,
+    /// Its pixels clipped at the white level, when known.
+    pub saturated: Option<Mask>,
+}
+
+impl DarkFrame {
+    /// The dark frame of `frame`, kept as it was decoded.
+    pub fn of(frame: LightFrame) -> Self {
+        let values = match frame.dn {
+            Some(dn) => Dark::Dn(dn),
+            None => Dark::Planes(frame.rgb),
+        };
+        DarkFrame {
+            values: Arc::new(values),
+            saturated: frame.saturated,
+        }
+    }
+}
+
+/// Subtracts a dark frame from a light frame, pixel by pixel: a frame kept as DN gets the dark
+/// frame attached (see [`crate::plane::DnSamples`]), one of `f32` planes has it subtracted
+/// now, to the same bits. A pixel saturated in either frame is saturated in the result.
+pub fn subtract_dark(frame: &mut LightFrame, dark: &DarkFrame) -> Result<()> {
+    let (w, h) = (frame.width(), frame.height());
+    let (dark_w, dark_h) = dark.values.size();
+    if (dark_w, dark_h) != (w, h) {
         return Err(Error::Invalid(format!(
-            "the dark frame is {}x{}, the light frame {w}x{h}",
-            dark.rgb.width(),
-            dark.rgb.height()
+            "the dark frame is {dark_w}x{dark_h}, the light frame {w}x{h}"
         )));
     }
-    let subtract = |plane: &mut Plane, dark: &Plane| {
-        plane
-            .data
-            .par_iter_mut()
-            .zip(&dark.data)
-            .for_each(|(v, d)| *v -= d);
-    };
-    subtract(&mut frame.rgb.r, &dark.rgb.r);
-    subtract(&mut frame.rgb.g, &dark.rgb.g);
-    subtract(&mut frame.rgb.b, &dark.rgb.b);
+    match &mut frame.dn {
+        Some(dn) => dn.dark = Some(Arc::clone(&dark.values)),
+        None => {
+            let planes = [&mut frame.rgb.r, &mut frame.rgb.g, &mut frame.rgb.b];
+            for (c, plane) in planes.into_iter().enumerate() {
+                (plane.data.par_iter_mut().enumerate())
+                    .for_each(|(i, v)| *v -= dark.values.value(c, i));
+            }
+        }
+    }
     if let Some(dark_sat) = &dark.saturated {
         let mask = frame
             .saturated
@@ -566,7 +594,7 @@ mod tests {
         dark.saturated.as_mut().unwrap().data[3] = true;
         let before = frame.rgb.g.data[1];
         dark.rgb.g.data[1] = 0.25 * before;
-        subtract_dark(&mut frame, &dark).unwrap();
+        subtract_dark(&mut frame, &DarkFrame::of(dark)).unwrap();
         assert!((frame.rgb.g.data[1] - 0.75 * before).abs() < 1e-7);
         assert_eq!(frame.rgb.r.data[0], 0.0);
         assert_eq!(

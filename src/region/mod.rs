@@ -106,15 +106,15 @@ pub fn crop(frames: &Frames, roi: &Roi) -> Result<Frames> {
             .lights
             .iter()
             .map(|f| {
-                let rgb = match &f.cfa {
-                    None => RgbPlanes {
+                let rgb = match (&f.cfa, &f.dn) {
+                    (None, None) => RgbPlanes {
                         r: crop_plane(&f.rgb.r, roi),
                         g: crop_plane(&f.rgb.g, roi),
                         b: crop_plane(&f.rgb.b, roi),
                     },
-                    // A frame stored as CFA samples is cropped to three planes of the
+                    // A frame stored as CFA samples (or DN) is cropped to three planes of the
                     // region's pixels (no CFA phase to carry over).
-                    Some(_) => f.window_planes(roi.x, roi.y, roi.width, roi.height),
+                    _ => f.window_planes(roi.x, roi.y, roi.width, roi.height),
                 };
                 LightFrame::from_rgb(rgb, f.saturated.as_ref().map(|m| crop_mask(m, roi)))
             })

@@ -393,6 +393,7 @@ mod tests {
                     rgb,
                     saturated: None,
                     cfa: None,
+                    dn: None,
                 }
             })
             .collect();

@@ -143,10 +143,21 @@ pub fn prefetch(frames: &Frames, i: usize) {
                 unsafe { _mm_prefetch::<_MM_HINT_T0>(p.data.as_ptr().add(i) as *const i8) };
             }
         }
+        // A dn16 set's frames share their dark frame.
+        let dark = frames
+            .lights
+            .first()
+            .and_then(|f| f.dn.as_ref()?.dark.as_ref());
+        if let Some(dark) = dark {
+            dark.prefetch(i);
+        }
         for f in &frames.lights {
             for p in f.rgb.channels().into_iter().filter(|p| p.len() > i) {
                 // SAFETY: `i` is inside the plane; prefetching never faults.
                 unsafe { _mm_prefetch::<_MM_HINT_T0>(p.data.as_ptr().add(i) as *const i8) };
+            }
+            if let Some(dn) = &f.dn {
+                dn.prefetch(i);
             }
             if let Some(m) = &f.saturated {
                 // SAFETY: as above.
@@ -183,6 +194,9 @@ pub fn load<T: Real>(p: &Plane, i0: usize) -> [T; LANES] {
 /// `y`), in `T`, however the frame stores them (see `LightFrame::cfa`).
 #[inline(always)]
 pub fn load_rgb<T: Real>(frame: &LightFrame, i0: usize, (x, y): (usize, usize)) -> [[T; LANES]; 3] {
+    if let Some(dn) = &frame.dn {
+        return std::array::from_fn(|c| dn.values::<LANES>(c, i0).map(T::of32));
+    }
     let Some(cfa) = &frame.cfa else {
         return [
             load(&frame.rgb.r, i0),

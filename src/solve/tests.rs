@@ -254,6 +254,7 @@ fn flat_frames(rig: &Rig, value: f32) -> Frames {
                 rgb,
                 saturated: Some(crate::plane::Mask::new(4, 1, false)),
                 cfa: None,
+                dn: None,
             }
         })
         .collect();

@@ -548,3 +548,74 @@ fn a_cfa_stack_solves_as_its_planes_do() {
         assert_same(&a, &b, what);
     }
 }
+
+/// `frames` stored as a dn16 set keeps them: 16-bit DN (black 600, white 15600) over a dark
+/// frame also kept as DN, read through [`crate::plane::DnSamples`]. Returns those frames and
+/// the same values as three `f32` planes per frame.
+fn as_dn_frames(frames: &Frames) -> (Frames, Frames) {
+    use crate::plane::{Dark, DnSamples, LightFrame};
+    let (w, h) = (frames.width, frames.height);
+    let (black, white) = (600.0, 15600.0);
+    let mut dark = DnSamples::new(w, h, black, white);
+    for (c, plane) in dark.dn.iter_mut().enumerate() {
+        for (i, v) in plane.iter_mut().enumerate() {
+            *v = 596 + ((i * 7 + c) % 9) as u16;
+        }
+    }
+    let dark = std::sync::Arc::new(Dark::Dn(dark.clone()));
+    let Dark::Dn(dark_dn) = &*dark else {
+        unreachable!()
+    };
+    let lights: Vec<LightFrame> = (frames.lights.iter())
+        .map(|f| {
+            let mut dn = DnSamples::new(w, h, black, white);
+            for (c, plane) in dn.dn.iter_mut().enumerate() {
+                for (i, v) in plane.iter_mut().enumerate() {
+                    let value = f.rgb.channels()[c].data[i] as f64 * (white - black);
+                    *v = (value.round() + dark_dn.dn[c][i] as f64).clamp(0.0, 65535.0) as u16;
+                }
+            }
+            dn.dark = Some(std::sync::Arc::clone(&dark));
+            LightFrame::from_dn(dn, f.saturated.clone())
+        })
+        .collect();
+    let with = |lights| Frames {
+        width: w,
+        height: h,
+        window: frames.window,
+        lights,
+    };
+    let kept = with(lights);
+    kept.validate().unwrap();
+    let planes = with(
+        kept.lights
+            .iter()
+            .map(|f| f.clone().with_planes())
+            .collect(),
+    );
+    (kept, planes)
+}
+
+/// Frames kept as DN solve, on every kernel, exactly as the same values stored as three
+/// planes per frame: the solver linearises them and subtracts the dark frame where it reads
+/// them, with the arithmetic the planes were built with.
+#[test]
+fn dn_frames_solve_as_their_planes_do() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::ShadowsSheen, MP, &Silent).unwrap();
+    let (kept, planes) = as_dn_frames(&frames);
+    assert!(kept
+        .lights
+        .iter()
+        .all(|f| f.dn.is_some() && f.rgb.g.data.is_empty()));
+    for (options, what) in [
+        (SolveOptions::default(), "default"),
+        (SolveOptions::exact(Estimator::Adaptive), "exact adaptive"),
+        (streaming(Precision::F64, None), "streaming f64"),
+        (streaming(Precision::F32, None), "streaming f32"),
+    ] {
+        let a = run(&rig, &kept, &options, None);
+        let b = run(&rig, &planes, &options, None);
+        assert_same(&a, &b, what);
+    }
+}

@@ -201,6 +201,7 @@ impl<'a> Scene<'a> {
                     rgb,
                     saturated: None,
                     cfa: None,
+                    dn: None,
                 }
             })
             .collect();
