@@ -55,17 +55,6 @@ impl Dark {
         }
     }
 
-    /// `N` linear values of channel `c` from pixel `i0`.
-    #[inline(always)]
-    pub fn values<const N: usize>(&self, c: usize, i0: usize) -> [f32; N] {
-        match self {
-            Dark::Planes(p) => p.channels()[c].data[i0..i0 + N]
-                .try_into()
-                .expect("N samples"),
-            Dark::Dn(d) => d.values(c, i0),
-        }
-    }
-
     /// Starts loading the cache lines at pixel `i` of every channel.
     #[inline(always)]
     pub fn prefetch(&self, i: usize) {
@@ -117,23 +106,6 @@ impl DnSamples {
             Some(dark) => v - dark.value(c, i),
             None => v,
         }
-    }
-
-    /// `N` values of channel `c` from pixel `i0`, the dark frame subtracted; written so the
-    /// compiler vectorises it inside the solver's SIMD kernels.
-    #[inline(always)]
-    pub fn values<const N: usize>(&self, c: usize, i0: usize) -> [f32; N] {
-        let dn: &[u16; N] = self.dn[c][i0..i0 + N].try_into().expect("N samples");
-        let mut out = [0.0f32; N];
-        for (o, &v) in out.iter_mut().zip(dn) {
-            *o = self.linear(v);
-        }
-        if let Some(dark) = &self.dark {
-            for (o, d) in out.iter_mut().zip(dark.values::<N>(c, i0)) {
-                *o -= d;
-            }
-        }
-        out
     }
 
     /// Starts loading the cache lines at pixel `i` of every channel (not the dark frame's,
@@ -228,8 +200,6 @@ mod tests {
                 let want = linear - dark_dn_planes.channels()[c].data[i];
                 assert_eq!(from_dn_dark.channels()[c].data[i].to_bits(), want.to_bits());
             }
-            let got: [f32; 4] = dn.values(c, 6);
-            assert_eq!(got, std::array::from_fn(|l| dn.value(c, 6 + l)));
         }
         assert!(dn.check_size().is_ok());
         dn.dn[1].pop();

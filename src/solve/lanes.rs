@@ -2,7 +2,7 @@
 //! computes in, a vector of lanes whose operations LLVM turns into vector instructions, the
 //! small symmetric-matrix helpers, and the prefetch of the input planes. No solve logic.
 
-use crate::plane::{Frames, LightFrame, Plane};
+use crate::plane::{Dark, DnSamples, Frames, LightFrame, Plane};
 
 /// Pixels processed together (one vector register of f32 on AVX-512, two on AVX2).
 pub const LANES: usize = 16;
@@ -190,12 +190,44 @@ pub fn load<T: Real>(p: &Plane, i0: usize) -> [T; LANES] {
     out
 }
 
+/// `LANES` values of channel `c` of a frame kept as DN from pixel index `i0`, in `T`: the
+/// arithmetic of [`DnSamples::value`], here so that it is compiled into (and vectorised with)
+/// each kernel.
+#[inline(always)]
+fn load_dn<T: Real>(dn: &DnSamples, c: usize, i0: usize) -> [T; LANES] {
+    let src: &[u16; LANES] = dn.dn[c][i0..i0 + LANES].try_into().expect("a whole chunk");
+    let mut values = [0.0f32; LANES];
+    for (v, &s) in values.iter_mut().zip(src) {
+        *v = dn.linear(s);
+    }
+    match dn.dark.as_deref() {
+        None => {}
+        Some(Dark::Planes(planes)) => {
+            let dark: &[f32; LANES] = planes.channels()[c].data[i0..i0 + LANES]
+                .try_into()
+                .expect("a whole chunk");
+            for (v, d) in values.iter_mut().zip(dark) {
+                *v -= d;
+            }
+        }
+        Some(Dark::Dn(dark)) => {
+            let src: &[u16; LANES] = dark.dn[c][i0..i0 + LANES]
+                .try_into()
+                .expect("a whole chunk");
+            for (v, &s) in values.iter_mut().zip(src) {
+                *v -= dark.linear(s);
+            }
+        }
+    }
+    values.map(T::of32)
+}
+
 /// The R, G, B values of the `LANES` pixels of `frame` from index `i0` (columns `x`.. of row
 /// `y`), in `T`, however the frame stores them (see `LightFrame::cfa`).
 #[inline(always)]
 pub fn load_rgb<T: Real>(frame: &LightFrame, i0: usize, (x, y): (usize, usize)) -> [[T; LANES]; 3] {
     if let Some(dn) = &frame.dn {
-        return std::array::from_fn(|c| dn.values::<LANES>(c, i0).map(T::of32));
+        return [load_dn(dn, 0, i0), load_dn(dn, 1, i0), load_dn(dn, 2, i0)];
     }
     let Some(cfa) = &frame.cfa else {
         return [

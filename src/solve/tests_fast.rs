@@ -550,9 +550,10 @@ fn a_cfa_stack_solves_as_its_planes_do() {
 }
 
 /// `frames` stored as a dn16 set keeps them: 16-bit DN (black 600, white 15600) over a dark
-/// frame also kept as DN, read through [`crate::plane::DnSamples`]. Returns those frames and
-/// the same values as three `f32` planes per frame.
-fn as_dn_frames(frames: &Frames) -> (Frames, Frames) {
+/// frame kept as DN too (or, with `dark_planes`, as `f32` planes), read through
+/// [`crate::plane::DnSamples`]. Returns those frames and the same values as three `f32` planes
+/// per frame.
+fn as_dn_frames(frames: &Frames, dark_planes: bool) -> (Frames, Frames) {
     use crate::plane::{Dark, DnSamples, LightFrame};
     let (w, h) = (frames.width, frames.height);
     let (black, white) = (600.0, 15600.0);
@@ -562,10 +563,11 @@ fn as_dn_frames(frames: &Frames) -> (Frames, Frames) {
             *v = 596 + ((i * 7 + c) % 9) as u16;
         }
     }
-    let dark = std::sync::Arc::new(Dark::Dn(dark.clone()));
-    let Dark::Dn(dark_dn) = &*dark else {
-        unreachable!()
-    };
+    let dark_dn = dark.clone();
+    let dark = std::sync::Arc::new(match dark_planes {
+        true => Dark::Planes(dark.to_planes()),
+        false => Dark::Dn(dark),
+    });
     let lights: Vec<LightFrame> = (frames.lights.iter())
         .map(|f| {
             let mut dn = DnSamples::new(w, h, black, white);
@@ -603,19 +605,19 @@ fn as_dn_frames(frames: &Frames) -> (Frames, Frames) {
 fn dn_frames_solve_as_their_planes_do() {
     let rig = Rig::default_rig();
     let (_, frames) = render_scene(&rig, SceneKind::ShadowsSheen, MP, &Silent).unwrap();
-    let (kept, planes) = as_dn_frames(&frames);
-    assert!(kept
-        .lights
-        .iter()
-        .all(|f| f.dn.is_some() && f.rgb.g.data.is_empty()));
-    for (options, what) in [
-        (SolveOptions::default(), "default"),
-        (SolveOptions::exact(Estimator::Adaptive), "exact adaptive"),
-        (streaming(Precision::F64, None), "streaming f64"),
-        (streaming(Precision::F32, None), "streaming f32"),
-    ] {
-        let a = run(&rig, &kept, &options, None);
-        let b = run(&rig, &planes, &options, None);
-        assert_same(&a, &b, what);
+    for dark_planes in [false, true] {
+        let (kept, planes) = as_dn_frames(&frames, dark_planes);
+        let kept_as_dn = |f: &crate::plane::LightFrame| f.dn.is_some() && f.rgb.g.data.is_empty();
+        assert!(kept.lights.iter().all(kept_as_dn));
+        for (options, what) in [
+            (SolveOptions::default(), "default"),
+            (SolveOptions::exact(Estimator::Adaptive), "exact adaptive"),
+            (streaming(Precision::F64, None), "streaming f64"),
+            (streaming(Precision::F32, None), "streaming f32"),
+        ] {
+            let a = run(&rig, &kept, &options, None);
+            let b = run(&rig, &planes, &options, None);
+            assert_same(&a, &b, &format!("{what}, dark as planes: {dark_planes}"));
+        }
     }
 }
