@@ -10,6 +10,20 @@ pub use dn::{Dark, DnSamples};
 
 use crate::error::{Error, Result};
 
+/// Asks the CPU to start loading the cache line of `data[i]`, when `i` is inside it (the
+/// solver reads many planes at once, more streams than the hardware prefetchers track).
+#[inline(always)]
+pub fn prefetch_at<T>(data: &[T], i: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if i < data.len() {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        // SAFETY: `i` is inside the slice; prefetching never faults.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(data.as_ptr().add(i) as *const i8) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (data, i);
+}
+
 /// One channel of an image: `width * height` samples, row-major, row 0 at the top.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Plane {

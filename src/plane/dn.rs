@@ -5,7 +5,7 @@
 
 use std::sync::Arc;
 
-use super::RgbPlanes;
+use super::{prefetch_at, RgbPlanes};
 
 /// The three DN planes of one frame and what turns them into linear values: channel `c` of
 /// pixel `i` is `(dn - black) / (white - black)` in `f32`, less the dark frame's linear value
@@ -59,23 +59,10 @@ impl Dark {
     #[inline(always)]
     pub fn prefetch(&self, i: usize) {
         match self {
-            Dark::Planes(p) => p.channels().iter().for_each(|p| prefetch(&p.data, i)),
+            Dark::Planes(p) => p.channels().iter().for_each(|p| prefetch_at(&p.data, i)),
             Dark::Dn(d) => d.prefetch(i),
         }
     }
-}
-
-/// Asks the CPU to start loading the cache line of `data[i]`, when `i` is inside it.
-#[inline(always)]
-fn prefetch<T>(data: &[T], i: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if i < data.len() {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        // SAFETY: `i` is inside the slice; prefetching never faults.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(data.as_ptr().add(i) as *const i8) };
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (data, i);
 }
 
 impl DnSamples {
@@ -112,7 +99,7 @@ impl DnSamples {
     /// which the frames of a set share).
     #[inline(always)]
     pub fn prefetch(&self, i: usize) {
-        self.dn.iter().for_each(|p| prefetch(p, i));
+        self.dn.iter().for_each(|p| prefetch_at(p, i));
     }
 
     /// The frame as three `f32` planes, the dark frame subtracted.

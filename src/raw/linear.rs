@@ -7,7 +7,7 @@ use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{DynamicImage, ImageBuffer, Rgb};
 
 use crate::error::{Error, Result};
-use crate::plane::{DnSamples, LightFrame, Mask, RgbPlanes};
+use crate::plane::{DnSamples, LightFrame, Mask};
 use crate::rig::Sensor;
 
 /// Raw digital numbers, RGB interleaved, row-major.
@@ -43,67 +43,19 @@ impl Levels {
 
 impl DnImage {
     /// Linear planes and the saturation mask (a pixel any of whose channels reached the white
-    /// level carries no usable value).
+    /// level carries no usable value): the frame [`decode_dn_frame`] keeps as DN, as `f32`
+    /// planes.
     pub fn to_light_frame(&self, levels: &Levels) -> LightFrame {
-        let mut frame = LinearRows::new(self.width, self.height, levels);
+        let mut frame = DnRows::new(self.width, self.height, levels);
         for (y, row) in self.data.chunks_exact(self.width * 3).enumerate() {
             frame.row(y, row.chunks_exact(3).map(|px| [px[0], px[1], px[2]]));
         }
-        frame.finish()
+        frame.finish().with_planes()
     }
 }
 
-/// A light frame filled row by row from DN pixels: linear `(dn - black) / (white - black)`,
-/// and a pixel is saturated where any channel reached the white level.
-struct LinearRows {
-    width: usize,
-    rgb: RgbPlanes,
-    saturated: Mask,
-    levels: Levels,
-    scale: f64,
-}
-
-impl LinearRows {
-    fn new(width: usize, height: usize, levels: &Levels) -> Self {
-        LinearRows {
-            width,
-            rgb: RgbPlanes::new(width, height),
-            saturated: Mask::new(width, height, false),
-            levels: *levels,
-            scale: 1.0 / (levels.white - levels.black),
-        }
-    }
-
-    /// Row `y` from its pixels (at most `width` of them are read).
-    #[inline]
-    fn row(&mut self, y: usize, pixels: impl Iterator<Item = [u16; 3]>) {
-        let (black, white, scale) = (self.levels.black, self.levels.white, self.scale);
-        let linear = |v: u16| ((v as f64 - black) * scale) as f32;
-        let at = y * self.width..(y + 1) * self.width;
-        // Zipped iterators, not indexing: no bounds check per sample of a 16 MP frame.
-        let outputs = self.rgb.r.data[at.clone()]
-            .iter_mut()
-            .zip(&mut self.rgb.g.data[at.clone()])
-            .zip(&mut self.rgb.b.data[at.clone()])
-            .zip(&mut self.saturated.data[at]);
-        for ((((r, g), b), clipped), px) in outputs.zip(pixels) {
-            *clipped = px.iter().any(|&v| v as f64 >= white);
-            (*r, *g, *b) = (linear(px[0]), linear(px[1]), linear(px[2]));
-        }
-    }
-
-    fn finish(self) -> LightFrame {
-        LightFrame {
-            rgb: self.rgb,
-            saturated: Some(self.saturated),
-            cfa: None,
-            dn: None,
-        }
-    }
-}
-
-/// A dn16 frame filled row by row from big-endian 16-bit RGB rows, kept as its DN (see
-/// [`DnSamples`]); a pixel is saturated where any channel reached the white level.
+/// A dn16 frame filled row by row from DN pixels, kept as its DN (see [`DnSamples`], which
+/// linearises them); a pixel is saturated where any channel reached the white level.
 struct DnRows {
     samples: DnSamples,
     saturated: Mask,
@@ -119,9 +71,9 @@ impl DnRows {
         }
     }
 
-    /// Row `y` from its bytes: six a pixel, R, G, B big-endian (at most `width` pixels read).
+    /// Row `y` from its pixels (at most `width` of them are read).
     #[inline]
-    fn row(&mut self, y: usize, bytes: &[u8]) {
+    fn row(&mut self, y: usize, pixels: impl Iterator<Item = [u16; 3]>) {
         let w = self.samples.width;
         let at = y * w..(y + 1) * w;
         let [r, g, b] = &mut self.samples.dn;
@@ -131,10 +83,9 @@ impl DnRows {
             .zip(&mut g[at.clone()])
             .zip(&mut b[at.clone()])
             .zip(&mut self.saturated.data[at]);
-        for ((((r, g), b), clipped), px) in outputs.zip(bytes.chunks_exact(6)) {
-            let dn = |k: usize| u16::from_be_bytes([px[2 * k], px[2 * k + 1]]);
-            (*r, *g, *b) = (dn(0), dn(1), dn(2));
-            *clipped = [*r, *g, *b].iter().any(|&v| v as f64 >= self.white);
+        for ((((r, g), b), clipped), px) in outputs.zip(pixels) {
+            *clipped = px.iter().any(|&v| v as f64 >= self.white);
+            [*r, *g, *b] = px;
         }
     }
 
@@ -186,7 +137,15 @@ fn png_rows_to_frame(
     let decoded = (|| {
         while let Some(row) = reader.next_row()? {
             if y < height {
-                frame.row(y, row.data());
+                // Six bytes a pixel: R, G, B big-endian.
+                let pixels = row.data().chunks_exact(6).map(|b| {
+                    [
+                        u16::from_be_bytes([b[0], b[1]]),
+                        u16::from_be_bytes([b[2], b[3]]),
+                        u16::from_be_bytes([b[4], b[5]]),
+                    ]
+                });
+                frame.row(y, pixels);
             }
             y += 1;
         }

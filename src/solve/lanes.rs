@@ -2,7 +2,7 @@
 //! computes in, a vector of lanes whose operations LLVM turns into vector instructions, the
 //! small symmetric-matrix helpers, and the prefetch of the input planes. No solve logic.
 
-use crate::plane::{Dark, DnSamples, Frames, LightFrame, Plane};
+use crate::plane::{prefetch_at, Dark, DnSamples, Frames, LightFrame, Plane};
 
 /// Pixels processed together (one vector register of f32 on AVX-512, two on AVX2).
 pub const LANES: usize = 16;
@@ -128,45 +128,36 @@ pub const PREFETCH_AHEAD: usize = 256;
 /// Asks the CPU to start loading the cache lines at pixel index `i` of every input plane.
 #[inline(always)]
 pub fn prefetch(frames: &Frames, i: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let n = frames.width * frames.height;
-        if i >= n {
-            return;
+    if i >= frames.width * frames.height {
+        return;
+    }
+    if let Some(cfa) = frames.lights.first().and_then(|f| f.cfa.as_ref()) {
+        // The frames of a stack share one set of ratio planes.
+        cfa.ratios
+            .channels()
+            .iter()
+            .for_each(|p| prefetch_at(&p.data, i));
+    }
+    // A dn16 set's frames share their dark frame.
+    let dark = frames
+        .lights
+        .first()
+        .and_then(|f| f.dn.as_ref()?.dark.as_ref());
+    if let Some(dark) = dark {
+        dark.prefetch(i);
+    }
+    for f in &frames.lights {
+        f.rgb
+            .channels()
+            .iter()
+            .for_each(|p| prefetch_at(&p.data, i));
+        if let Some(dn) = &f.dn {
+            dn.prefetch(i);
         }
-        let shared = frames.lights.first().and_then(|f| f.cfa.as_ref());
-        if let Some(cfa) = shared {
-            // The frames of a stack share one set of ratio planes.
-            for p in cfa.ratios.channels() {
-                // SAFETY: `i` is inside the plane; prefetching never faults.
-                unsafe { _mm_prefetch::<_MM_HINT_T0>(p.data.as_ptr().add(i) as *const i8) };
-            }
-        }
-        // A dn16 set's frames share their dark frame.
-        let dark = frames
-            .lights
-            .first()
-            .and_then(|f| f.dn.as_ref()?.dark.as_ref());
-        if let Some(dark) = dark {
-            dark.prefetch(i);
-        }
-        for f in &frames.lights {
-            for p in f.rgb.channels().into_iter().filter(|p| p.len() > i) {
-                // SAFETY: `i` is inside the plane; prefetching never faults.
-                unsafe { _mm_prefetch::<_MM_HINT_T0>(p.data.as_ptr().add(i) as *const i8) };
-            }
-            if let Some(dn) = &f.dn {
-                dn.prefetch(i);
-            }
-            if let Some(m) = &f.saturated {
-                // SAFETY: as above.
-                unsafe { _mm_prefetch::<_MM_HINT_T0>(m.data.as_ptr().add(i) as *const i8) };
-            }
+        if let Some(m) = &f.saturated {
+            prefetch_at(&m.data, i);
         }
     }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (frames, i);
 }
 
 /// `a - p q` where `drop`, else `a`.

@@ -512,22 +512,44 @@ fn as_cfa_stack(frames: &Frames) -> (Frames, Frames) {
             )
         })
         .collect();
+    stored_and_planes(frames, lights)
+}
+
+/// `lights` (each storing its values its own way) as frames shaped like `frames`, checked,
+/// and the same values as three `f32` planes per frame.
+fn stored_and_planes(frames: &Frames, lights: Vec<crate::plane::LightFrame>) -> (Frames, Frames) {
+    use crate::plane::LightFrame;
     let with = |lights| Frames {
-        width: w,
-        height: h,
+        width: frames.width,
+        height: frames.height,
         window: frames.window,
         lights,
     };
-    let stack = with(lights);
-    stack.validate().unwrap();
+    let stored = with(lights);
+    stored.validate().unwrap();
     let planes = with(
-        stack
+        stored
             .lights
             .iter()
             .map(|f| LightFrame::from_rgb(f.to_planes().into_owned(), f.saturated.clone()))
             .collect(),
     );
-    (stack, planes)
+    (stored, planes)
+}
+
+/// Solves `stored` and `planes` (the same values) with each of `kernels`: every output must
+/// be the same, bit for bit; `context` names the case in a failure.
+fn assert_kernels_agree(
+    rig: &Rig,
+    (stored, planes): (&Frames, &Frames),
+    kernels: &[(SolveOptions, &str)],
+    context: &str,
+) {
+    for (options, what) in kernels {
+        let a = run(rig, stored, options, None);
+        let b = run(rig, planes, options, None);
+        assert_same(&a, &b, &format!("{what}{context}"));
+    }
 }
 
 /// A full-resolution RAW stack solves, on every kernel, exactly as the same values stored as
@@ -538,15 +560,12 @@ fn a_cfa_stack_solves_as_its_planes_do() {
     let rig = Rig::default_rig();
     let (_, frames) = render_scene(&rig, SceneKind::ShadowsSheen, MP, &Silent).unwrap();
     let (stack, planes) = as_cfa_stack(&damaged(frames));
-    for (options, what) in [
+    let kernels = [
         (SolveOptions::default(), "default"),
         (SolveOptions::exact(Estimator::Adaptive), "exact adaptive"),
         (streaming(Precision::F64, None), "streaming f64"),
-    ] {
-        let a = run(&rig, &stack, &options, None);
-        let b = run(&rig, &planes, &options, None);
-        assert_same(&a, &b, what);
-    }
+    ];
+    assert_kernels_agree(&rig, (&stack, &planes), &kernels, "");
 }
 
 /// `frames` stored as a dn16 set keeps them: 16-bit DN (black 600, white 15600) over a dark
@@ -581,21 +600,7 @@ fn as_dn_frames(frames: &Frames, dark_planes: bool) -> (Frames, Frames) {
             LightFrame::from_dn(dn, f.saturated.clone())
         })
         .collect();
-    let with = |lights| Frames {
-        width: w,
-        height: h,
-        window: frames.window,
-        lights,
-    };
-    let kept = with(lights);
-    kept.validate().unwrap();
-    let planes = with(
-        kept.lights
-            .iter()
-            .map(|f| f.clone().with_planes())
-            .collect(),
-    );
-    (kept, planes)
+    stored_and_planes(frames, lights)
 }
 
 /// Frames kept as DN solve, on every kernel, exactly as the same values stored as three
@@ -605,19 +610,17 @@ fn as_dn_frames(frames: &Frames, dark_planes: bool) -> (Frames, Frames) {
 fn dn_frames_solve_as_their_planes_do() {
     let rig = Rig::default_rig();
     let (_, frames) = render_scene(&rig, SceneKind::ShadowsSheen, MP, &Silent).unwrap();
+    let kernels = [
+        (SolveOptions::default(), "default"),
+        (SolveOptions::exact(Estimator::Adaptive), "exact adaptive"),
+        (streaming(Precision::F64, None), "streaming f64"),
+        (streaming(Precision::F32, None), "streaming f32"),
+    ];
     for dark_planes in [false, true] {
         let (kept, planes) = as_dn_frames(&frames, dark_planes);
         let kept_as_dn = |f: &crate::plane::LightFrame| f.dn.is_some() && f.rgb.g.data.is_empty();
         assert!(kept.lights.iter().all(kept_as_dn));
-        for (options, what) in [
-            (SolveOptions::default(), "default"),
-            (SolveOptions::exact(Estimator::Adaptive), "exact adaptive"),
-            (streaming(Precision::F64, None), "streaming f64"),
-            (streaming(Precision::F32, None), "streaming f32"),
-        ] {
-            let a = run(&rig, &kept, &options, None);
-            let b = run(&rig, &planes, &options, None);
-            assert_same(&a, &b, &format!("{what}, dark as planes: {dark_planes}"));
-        }
+        let context = format!(", dark as planes: {dark_planes}");
+        assert_kernels_agree(&rig, (&kept, &planes), &kernels, &context);
     }
 }
