@@ -1,5 +1,6 @@
 //! Encodings of the solved maps for game engines: normal maps in OpenGL (+Y up) or DirectX
-//! (+Y down) convention stored as `n * 0.5 + 0.5`, and albedo in sRGB for PNG.
+//! (+Y down) convention stored as `n * 0.5 + 0.5`, and albedo in sRGB for PNG (the curve and
+//! its quantisers are in `srgb`).
 
 use std::borrow::Cow;
 
@@ -7,6 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use rayon::prelude::*;
 
+use crate::maps::srgb::srgb16;
 use crate::math::round_non_negative;
 use crate::plane::Plane;
 use crate::solve::{PixelStatus, SolveResult};
@@ -63,27 +65,6 @@ pub fn u16_to_unit(v: u16) -> f32 {
     v as f32 / 65535.0 * 2.0 - 1.0
 }
 
-/// Linear to sRGB-encoded (IEC 61966-2-1), clamped to [0, 1].
-#[inline]
-pub fn linear_to_srgb(v: f32) -> f32 {
-    let v = v.clamp(0.0, 1.0);
-    if v <= 0.003_130_8 {
-        12.92 * v
-    } else {
-        1.055 * v.powf(1.0 / 2.4) - 0.055
-    }
-}
-
-/// sRGB-encoded to linear (IEC 61966-2-1), the inverse of [`linear_to_srgb`]; not clamped.
-#[inline]
-pub fn srgb_to_linear(v: f32) -> f32 {
-    if v <= 0.040_45 {
-        v / 12.92
-    } else {
-        ((v + 0.055) / 1.055).powf(2.4)
-    }
-}
-
 /// Interleaved 16-bit RGB of the normal map.
 pub fn normal_rgb16(result: &SolveResult, convention: NormalConvention) -> Vec<u16> {
     let [nx, ny, nz] = &result.normal;
@@ -97,13 +78,15 @@ pub fn normal_rgb16(result: &SolveResult, convention: NormalConvention) -> Vec<u
 /// display planes are not built first (193 MB of fresh memory at 16 MP).
 pub fn albedo_rgb16(result: &SolveResult, camera_to_srgb: Option<&[[f64; 3]; 3]>) -> Vec<u16> {
     let [r, g, b] = &result.albedo;
+    // `round(linear_to_srgb(v) * 65535)`, from a table (48 M `powf` at 16 MP otherwise).
+    let srgb16 = srgb16();
     interleave(result.width, r.len(), |i| {
         if result.status[i] != PixelStatus::Solved {
             return [0; 3];
         }
         let camera = [r.data[i], g.data[i], b.data[i]];
         let display = camera_to_srgb.map_or(camera, |m| display_pixel(m, camera));
-        display.map(|v| round_non_negative(linear_to_srgb(v) * 65535.0) as u16)
+        display.map(|v| srgb16.code(v))
     })
 }
 
@@ -146,6 +129,7 @@ fn interleave(width: usize, pixels: usize, f: impl Fn(usize) -> [u16; 3] + Sync)
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::maps::srgb::{linear_to_srgb, srgb_to_linear};
 
     #[test]
     fn unit_encoding_round_trips_within_half_a_step() {

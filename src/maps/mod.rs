@@ -7,6 +7,7 @@ pub mod derive;
 pub mod encode;
 pub mod html;
 pub mod report;
+pub mod srgb;
 
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};

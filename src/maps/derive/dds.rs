@@ -12,7 +12,7 @@ use super::mips::MipChain;
 use super::SolvedMaps;
 use crate::error::{Error, Result};
 use crate::fsutil::write_atomic;
-use crate::maps::encode::linear_to_srgb;
+use crate::maps::srgb::linear_to_srgb;
 use crate::maps::NormalConvention;
 use crate::plane::Plane;
 

@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use super::{HeightReport, SolvedMaps};
 use crate::error::{Error, Result};
 use crate::io::{write_exr, write_png};
-use crate::maps::encode::linear_to_srgb;
+use crate::maps::srgb::linear_to_srgb;
 use crate::maps::NormalConvention;
 use crate::plane::Plane;
 

@@ -202,7 +202,8 @@ pub const FIT_CLASSES: [(&str, [u8; 3], &str); 3] = [
 ];
 
 /// How many pixels of `plane` hold each class below `n` (the solved ones only, with
-/// `solved_only`), counted on every core.
+/// `solved_only`), counted on every core in blocks of plain loops (a fold over 16 M indexed
+/// values, moving its count vector through every step, took a seventh of the page's time).
 fn class_counts(
     plane: &crate::plane::Plane,
     maps: &FullMaps,
@@ -210,24 +211,29 @@ fn class_counts(
     n: usize,
 ) -> Vec<usize> {
     use rayon::prelude::*;
-    let count = |mut counts: Vec<usize>, (i, &v): (usize, &f32)| {
-        if (!solved_only || maps.solved(i)) && v >= 0.0 && (v as usize) < n {
-            counts[v as usize] += 1;
+    const BLOCK: usize = 1 << 16;
+    let count_block = |(b, values): (usize, &[f32])| {
+        let mut counts = [0usize; 256];
+        for (j, &v) in values.iter().enumerate() {
+            let kept = !solved_only || maps.solved(b * BLOCK + j);
+            // `v as usize` saturates: NaN and negative values are 0, so they are tested first.
+            counts[images::class_of(v)] += (kept && v >= 0.0) as usize;
         }
         counts
     };
-    plane
+    let totals = plane
         .data
-        .par_iter()
+        .par_chunks(BLOCK)
         .enumerate()
-        .fold(|| vec![0usize; n], count)
+        .map(count_block)
         .reduce(
-            || vec![0usize; n],
+            || [0usize; 256],
             |mut a, b| {
                 a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
                 a
             },
-        )
+        );
+    totals[..n].to_vec()
 }
 
 fn legend_classes(classes: &[(&str, [u8; 3], &str)], counts: &[usize]) -> String {

@@ -13,7 +13,7 @@ use image::{Rgb, RgbImage};
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::maps::encode::{linear_to_srgb, srgb_to_linear};
+use crate::maps::srgb::{self, srgb_to_linear};
 
 /// Which BRDF shades the relight.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -82,66 +82,12 @@ const PI: f32 = std::f32::consts::PI;
 const F0: f32 = 0.04;
 const VELVET_AMPLITUDE: f32 = 4.0;
 
-/// `(linear_to_srgb(v) * 255).round()` as a byte, the same byte for every `v`, from a table
-/// instead of a `powf`: the loupe converts every sample of a 16 MP albedo (48 M of them).
+/// `(srgb::linear_to_srgb(v) * 255).round()` as a byte, the same byte for every `v`, from a table
+/// instead of a `powf` ([`srgb::srgb8`]): the loupe converts every sample of a 16 MP albedo
+/// (48 M of them).
+#[inline]
 pub fn linear_to_srgb8(v: f32) -> u8 {
-    static TABLE: std::sync::OnceLock<Srgb8> = std::sync::OnceLock::new();
-    TABLE.get_or_init(Srgb8::new).byte(v)
-}
-
-/// The byte of [`linear_to_srgb`] by direct computation.
-fn srgb8_direct(v: f32) -> u8 {
-    (linear_to_srgb(v).clamp(0.0, 1.0) * 255.0).round() as u8
-}
-
-/// Bins over [0, 1] for the table's first guess; each holds at most one step of the byte
-/// (the transfer's steepest slope, 12.92 * 255 per unit, is under one byte per bin).
-const SRGB8_BINS: usize = 4096;
-
-struct Srgb8 {
-    /// `thresholds[k]`: the least `v` whose byte is at least `k` (k = 1..=255); the byte
-    /// rises with `v`.
-    thresholds: [f32; 256],
-    /// Per bin, the byte at the bin's lower edge.
-    start: Vec<u8>,
-}
-
-impl Srgb8 {
-    fn new() -> Srgb8 {
-        let mut thresholds = [0.0f32; 256];
-        for (k, t) in thresholds.iter_mut().enumerate().skip(1) {
-            // Bisection over the bit patterns of [0, 1], which order as the values do.
-            let (mut lo, mut hi) = (0u32, 1.0f32.to_bits());
-            while lo < hi {
-                let mid = lo + (hi - lo) / 2;
-                if srgb8_direct(f32::from_bits(mid)) as usize >= k {
-                    hi = mid;
-                } else {
-                    lo = mid + 1;
-                }
-            }
-            *t = f32::from_bits(lo);
-        }
-        let start = (0..SRGB8_BINS)
-            .map(|b| srgb8_direct(b as f32 / SRGB8_BINS as f32))
-            .collect();
-        Srgb8 { thresholds, start }
-    }
-
-    fn byte(&self, v: f32) -> u8 {
-        // NaN and v <= 0 give 0, as the direct computation does.
-        if v.is_nan() || v <= 0.0 {
-            return 0;
-        }
-        if v >= 1.0 {
-            return 255;
-        }
-        let mut k = self.start[((v * SRGB8_BINS as f32) as usize).min(SRGB8_BINS - 1)];
-        while k < 255 && v >= self.thresholds[k as usize + 1] {
-            k += 1;
-        }
-        k
-    }
+    srgb::srgb8().code(v) as u8
 }
 
 fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
@@ -226,18 +172,7 @@ pub fn render(textures: &RelightTextures, params: &RelightParams) -> RgbImage {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn the_srgb_byte_table_gives_the_direct_byte() {
-        // Every 61st bit pattern from 0 to just past 1 (17 million values), and the edges.
-        let bits = (0..=1.0f32.to_bits() + 1000).step_by(61);
-        for v in bits
-            .map(f32::from_bits)
-            .chain([-1.0, 0.0, 1.0, 2.0, f32::NAN, f32::INFINITY])
-        {
-            assert_eq!(linear_to_srgb8(v), srgb8_direct(v), "at {v:e}");
-        }
-    }
+    use crate::maps::srgb::linear_to_srgb;
 
     fn flat_white() -> ([u8; 3], [u8; 3]) {
         ([255; 3], [128, 128, 255])
