@@ -240,6 +240,31 @@ impl SolveResult {
         self.status.iter().filter(|&&s| s == status).count()
     }
 
+    /// Pixels per status and solved pixels per fit (in the order of [`PixelStatus::ALL`] and
+    /// [`PixelFit::ALL`]): [`Self::count`] and [`Self::count_fit`] of each, in one pass on
+    /// every core (nine passes over 16 M pixels were most of the report's own time).
+    pub fn class_counts(&self) -> ([usize; 6], [usize; 3]) {
+        use rayon::prelude::*;
+        const BLOCK: usize = 1 << 16;
+        let add = |(mut s, mut f): ([usize; 6], [usize; 3]), (ds, df): ([usize; 6], [usize; 3])| {
+            s.iter_mut().zip(ds).for_each(|(a, b)| *a += b);
+            f.iter_mut().zip(df).for_each(|(a, b)| *a += b);
+            (s, f)
+        };
+        let count_block = |(status, fit): (&[PixelStatus], &[PixelFit])| {
+            let (mut s, mut f) = ([0usize; 6], [0usize; 3]);
+            for (&status, &fit) in status.iter().zip(fit) {
+                s[status as usize] += 1;
+                f[fit as usize] += (status == PixelStatus::Solved) as usize;
+            }
+            (s, f)
+        };
+        (self.status.par_chunks(BLOCK))
+            .zip(self.fit.par_chunks(BLOCK))
+            .map(count_block)
+            .reduce(|| ([0; 6], [0; 3]), add)
+    }
+
     /// The unit normal at pixel index `i`.
     pub fn normal_at(&self, i: usize) -> Vector3<f64> {
         Vector3::new(

@@ -544,3 +544,28 @@ fn a_raw_pixels_dark_test_is_on_its_own_sample() {
         }
     }
 }
+
+#[test]
+fn class_counts_are_the_counts_of_each_status_and_fit() {
+    // Over several blocks of the parallel count, every status and fit mixed, some fits on
+    // pixels that are not solved (which the fit counts leave out).
+    let (w, h) = (1000, 200);
+    let mut result = SolveResult::new(w, h);
+    for i in 0..w * h {
+        result.status[i] = PixelStatus::ALL[(i * 7 / 3) % 6];
+        result.fit[i] = PixelFit::ALL[(i / 5) % 3];
+    }
+    let (statuses, fits) = result.class_counts();
+    for (k, &s) in PixelStatus::ALL.iter().enumerate() {
+        assert_eq!(statuses[k], result.count(s), "{s:?}");
+        assert!(statuses[k] > 0);
+    }
+    for (k, &f) in PixelFit::ALL.iter().enumerate() {
+        assert_eq!(fits[k], result.count_fit(f), "{f:?}");
+        assert!(fits[k] > 0);
+    }
+    assert!(
+        fits.iter().sum::<usize>() < w * h,
+        "unsolved pixels' fits are not counted"
+    );
+}
