@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use rayon::prelude::*;
 
-use crate::maps::srgb::srgb16;
+use crate::maps::srgb::{srgb16, srgb16_direct};
 use crate::math::round_non_negative;
 use crate::plane::Plane;
 use crate::solve::{PixelStatus, SolveResult};
@@ -77,16 +77,34 @@ pub fn normal_rgb16(result: &SolveResult, convention: NormalConvention) -> Vec<u
 /// primaries are not sRGB's; unsolved pixels are black. One pass, pixel by pixel: the
 /// display planes are not built first (193 MB of fresh memory at 16 MP).
 pub fn albedo_rgb16(result: &SolveResult, camera_to_srgb: Option<&[[f64; 3]; 3]>) -> Vec<u16> {
+    // `round(linear_to_srgb(v) * 65535)` from the table (48 M `powf` at 16 MP otherwise),
+    // the same codes; the table takes about 20 ms to build, more than a `powf` per value
+    // costs under about 2 MP.
+    if result.albedo[0].len() >= SRGB16_TABLE_MIN_PIXELS {
+        let table = srgb16();
+        albedo_rgb16_with(result, camera_to_srgb, |v| table.code(v))
+    } else {
+        albedo_rgb16_with(result, camera_to_srgb, srgb16_direct)
+    }
+}
+
+/// Pixels from which [`albedo_rgb16`] quantises through the table.
+const SRGB16_TABLE_MIN_PIXELS: usize = 2_000_000;
+
+/// [`albedo_rgb16`] with each display value quantised by `code`.
+fn albedo_rgb16_with(
+    result: &SolveResult,
+    camera_to_srgb: Option<&[[f64; 3]; 3]>,
+    code: impl Fn(f32) -> u16 + Sync,
+) -> Vec<u16> {
     let [r, g, b] = &result.albedo;
-    // `round(linear_to_srgb(v) * 65535)`, from a table (48 M `powf` at 16 MP otherwise).
-    let srgb16 = srgb16();
     interleave(result.width, r.len(), |i| {
         if result.status[i] != PixelStatus::Solved {
             return [0; 3];
         }
         let camera = [r.data[i], g.data[i], b.data[i]];
         let display = camera_to_srgb.map_or(camera, |m| display_pixel(m, camera));
-        display.map(|v| srgb16.code(v))
+        display.map(&code)
     })
 }
 
@@ -178,6 +196,9 @@ mod tests {
                 }
             }
             assert_eq!(albedo_rgb16(&result, m), expected, "matrix {m:?}");
+            // The table path, which large maps take, gives the same codes.
+            let table = albedo_rgb16_with(&result, m, |v| srgb16().code(v));
+            assert_eq!(table, expected, "matrix {m:?}, table");
         }
     }
 
