@@ -86,3 +86,40 @@ fn maps_from_memory_equal_the_maps_read_back_from_the_files() {
     );
     assert_eq!(confidence, 0.0);
 }
+
+/// The legend's class counts, counted in parallel blocks, equal a plain count: only whole
+/// classes below `n` of non-negative values, the solved pixels only where asked, over more
+/// than one block.
+#[test]
+fn class_counts_count_each_class_below_n_of_the_pixels_asked_for() {
+    use crate::plane::Plane;
+    use std::borrow::Cow;
+    let (w, h) = (1000, 150);
+    let odd = [f32::NAN, -1.0, 5.5, 300.0, 2.0, 0.0, 1.0, 7.0];
+    let status = Plane::from_vec(w, h, (0..w * h).map(|i| ((i / 7) % 3) as f32).collect());
+    let fit = Plane::from_vec(w, h, (0..w * h).map(|i| odd[i % odd.len()]).collect());
+    let (status, fit) = (status.unwrap(), fit.unwrap());
+    let maps = images::FullMaps {
+        width: w,
+        height: h,
+        albedo: None,
+        normal: None,
+        confidence: Some([
+            Cow::Owned(status.clone()),
+            Cow::Owned(fit.clone()),
+            Cow::Owned(fit.clone()),
+            Cow::Owned(fit.clone()),
+        ]),
+        missing: Vec::new(),
+    };
+    for (plane, solved_only, n) in [(&status, false, 6), (&fit, true, 3), (&fit, false, 6)] {
+        let mut expected = vec![0usize; n];
+        for (i, &v) in plane.data.iter().enumerate() {
+            if (!solved_only || status.data[i] == 0.0) && v >= 0.0 && (v as usize) < n {
+                expected[v as usize] += 1;
+            }
+        }
+        assert!(expected[..3].iter().all(|&c| c > 0), "the classes occur");
+        assert_eq!(class_counts(plane, &maps, solved_only, n), expected);
+    }
+}
