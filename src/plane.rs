@@ -446,18 +446,20 @@ impl Frames {
     /// Checks that every frame has the frames' size, so the solver can index blindly.
     pub fn validate(&self) -> Result<()> {
         for (k, frame) in self.lights.iter().enumerate() {
+            let wrong_size = |width: usize, height: usize| {
+                Error::Invalid(format!(
+                    "frame for light {k} is {width}x{height}, the capture is {}x{}",
+                    self.width, self.height
+                ))
+            };
             let planes = match (&frame.cfa, &frame.dn) {
                 (None, None) => frame.rgb.channels().to_vec(),
                 (Some(cfa), _) => std::iter::once(&frame.rgb.g)
                     .chain(cfa.ratios.channels())
                     .collect(),
                 (None, Some(dn)) => {
-                    let size = (dn.width, dn.height) == (self.width, self.height);
-                    if !size {
-                        return Err(Error::Invalid(format!(
-                            "frame for light {k} is {}x{}, the capture is {}x{}",
-                            dn.width, dn.height, self.width, self.height
-                        )));
+                    if (dn.width, dn.height) != (self.width, self.height) {
+                        return Err(wrong_size(dn.width, dn.height));
                     }
                     dn.check_size()
                         .map_err(|e| Error::Invalid(format!("frame for light {k} {e}")))?;
@@ -469,10 +471,7 @@ impl Frames {
                     || plane.height != self.height
                     || plane.len() != self.width * self.height
                 {
-                    return Err(Error::Invalid(format!(
-                        "frame for light {k} is {}x{}, the capture is {}x{}",
-                        plane.width, plane.height, self.width, self.height
-                    )));
+                    return Err(wrong_size(plane.width, plane.height));
                 }
             }
             if let Some(mask) = &frame.saturated {

@@ -230,9 +230,6 @@ fn truth_without_unknown_albedo<S: Serializer>(
     value.serialize(serializer)
 }
 
-/// Mean predicted error over the solved pixels, or `None` when any of them has none (the
-/// solvers leave 0 where they do not compute it; an exact 0 from a noise model needs a
-/// sensor without noise, which no capture has).
 /// The mean residual over the solved pixels (0 without any), summed in pixel order.
 fn mean_residual(result: &SolveResult) -> f64 {
     // One pass over the pixels (a list of the solved pixels' indices was 128 MB at 16 MP).
@@ -251,6 +248,9 @@ fn mean_residual(result: &SolveResult) -> f64 {
     }
 }
 
+/// Mean predicted error over the solved pixels, or `None` when any of them has none (the
+/// solvers leave 0 where they do not compute it; an exact 0 from a noise model needs a
+/// sensor without noise, which no capture has).
 fn mean_predicted_error_deg(result: &SolveResult) -> Option<f64> {
     let mut sum = 0.0;
     let mut n = 0usize;

@@ -1,6 +1,7 @@
-//! The sRGB transfer curve (IEC 61966-2-1), and linear values quantised through it to 8 or 16 bits, from a table instead of a
-//! `powf` per value: `albedo.png` holds 48 M such values at 16 MP, and the report page's loupe
-//! as many again. The table gives the code the direct computation gives, for every `f32`.
+//! The sRGB transfer curve (IEC 61966-2-1), and linear values quantised through it to 8 or
+//! 16 bits from a table instead of a `powf` per value: `albedo.png` holds 48 M such values at
+//! 16 MP, and the report page's loupe as many again. The table gives the code the direct
+//! computation gives, for every `f32`.
 //!
 //! How: a value's code rises with the value, and the values order as their bit patterns do.
 //! So the table holds, per code, the least value that reaches it (found by bisection over the
