@@ -24,8 +24,10 @@ use sha2::{Digest, Sha256};
 use crate::error::{Error, Result};
 
 mod atomic;
+mod direct;
 
-pub use atomic::{write_atomic, AtomicFile};
+pub use atomic::{write_atomic, AtomicFile, FileWriter};
+pub use direct::{DirectFile, BLOCK as DIRECT_BLOCK};
 
 /// The ownership record psscan keeps in every folder it writes: the entries it wrote.
 pub const OWNED_FILE: &str = ".psscan-owned.json";

@@ -2,9 +2,10 @@
 //! renamed over the destination (registered as staging meanwhile, so an interrupt removes it).
 
 use std::fs;
-use std::io::Write;
+use std::io::{Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
+use super::direct::DirectFile;
 use super::{register, temp_sibling, unregister};
 use crate::error::{Error, Result};
 
@@ -26,7 +27,16 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 pub struct AtomicFile {
     path: PathBuf,
     tmp: PathBuf,
-    file: Option<std::io::BufWriter<fs::File>>,
+    file: Option<FileWriter>,
+}
+
+/// Where an [`AtomicFile`]'s bytes go: through a buffer and the page cache, or past the page
+/// cache ([`DirectFile`], for large files).
+pub enum FileWriter {
+    /// Through a buffer of [`ATOMIC_FILE_BUFFER`] bytes and the page cache.
+    Buffered(std::io::BufWriter<fs::File>),
+    /// Past the page cache.
+    Direct(DirectFile),
 }
 
 /// The buffer between an encoder and its file: large enough that the write calls cost
@@ -37,13 +47,32 @@ impl AtomicFile {
     /// Creates the temporary sibling of `path` (registered as staging, so an interrupt
     /// removes it).
     pub fn create(path: &Path) -> Result<AtomicFile> {
+        AtomicFile::create_with(path, |tmp| {
+            let file = fs::File::create(tmp)?;
+            Ok(FileWriter::Buffered(std::io::BufWriter::with_capacity(
+                ATOMIC_FILE_BUFFER,
+                file,
+            )))
+        })
+    }
+
+    /// [`AtomicFile::create`] for a large file that is not read back soon (a 16 MP map): its
+    /// bytes bypass the page cache where the file system allows it ([`DirectFile`]).
+    pub fn create_uncached(path: &Path) -> Result<AtomicFile> {
+        AtomicFile::create_with(path, |tmp| Ok(FileWriter::Direct(DirectFile::create(tmp)?)))
+    }
+
+    fn create_with(
+        path: &Path,
+        open: impl FnOnce(&Path) -> std::io::Result<FileWriter>,
+    ) -> Result<AtomicFile> {
         let tmp = temp_sibling(path);
         register(&tmp);
-        match fs::File::create(&tmp) {
+        match open(&tmp) {
             Ok(file) => Ok(AtomicFile {
                 path: path.to_path_buf(),
                 tmp,
-                file: Some(std::io::BufWriter::with_capacity(ATOMIC_FILE_BUFFER, file)),
+                file: Some(file),
             }),
             Err(source) => {
                 unregister(&tmp);
@@ -54,7 +83,7 @@ impl AtomicFile {
 
     /// Where the encoder writes (buffered; seekable for formats that go back to fill in an
     /// offset table).
-    pub fn writer(&mut self) -> &mut std::io::BufWriter<fs::File> {
+    pub fn writer(&mut self) -> &mut FileWriter {
         self.file.as_mut().expect("a file not yet committed")
     }
 
@@ -62,7 +91,12 @@ impl AtomicFile {
     pub fn commit(mut self) -> Result<()> {
         let file = self.file.take().expect("committed once");
         let result = (|| -> std::io::Result<()> {
-            let file = file.into_inner().map_err(|e| e.into_error())?;
+            let file = match file {
+                FileWriter::Buffered(buffered) => {
+                    buffered.into_inner().map_err(|e| e.into_error())?
+                }
+                FileWriter::Direct(direct) => direct.finish()?,
+            };
             file.sync_all()?;
             fs::rename(&self.tmp, &self.path)
         })();
@@ -81,6 +115,38 @@ impl Drop for AtomicFile {
         if self.file.take().is_some() {
             let _ = fs::remove_file(&self.tmp);
             unregister(&self.tmp);
+        }
+    }
+}
+
+impl Write for FileWriter {
+    fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+        match self {
+            FileWriter::Buffered(w) => w.write(bytes),
+            FileWriter::Direct(w) => w.write(bytes),
+        }
+    }
+
+    fn write_all(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        match self {
+            FileWriter::Buffered(w) => w.write_all(bytes),
+            FileWriter::Direct(w) => w.write_all(bytes),
+        }
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        match self {
+            FileWriter::Buffered(w) => w.flush(),
+            FileWriter::Direct(w) => w.flush(),
+        }
+    }
+}
+
+impl Seek for FileWriter {
+    fn seek(&mut self, to: SeekFrom) -> std::io::Result<u64> {
+        match self {
+            FileWriter::Buffered(w) => w.seek(to),
+            FileWriter::Direct(w) => w.seek(to),
         }
     }
 }

@@ -171,6 +171,12 @@ fn sha256_of_known_input() {
 
 #[test]
 fn an_atomic_file_appears_only_when_committed_and_leaves_nothing_when_dropped() {
+    atomic_file_appears_only_when_committed(AtomicFile::create);
+    // The same, past the page cache.
+    atomic_file_appears_only_when_committed(AtomicFile::create_uncached);
+}
+
+fn atomic_file_appears_only_when_committed(create: fn(&Path) -> Result<AtomicFile>) {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("map.exr");
     std::fs::write(&path, b"old").unwrap();
@@ -185,7 +191,7 @@ fn an_atomic_file_appears_only_when_committed_and_leaves_nothing_when_dropped() 
 
     // An encoder that fails half-way: the old file stays, no temporary file is left, and
     // nothing is left registered for an interrupt to remove.
-    let mut failed = AtomicFile::create(&path).unwrap();
+    let mut failed = create(&path).unwrap();
     failed.writer().write_all(b"half").unwrap();
     assert_eq!(entries().len(), 2, "{:?}", entries());
     drop(failed);
@@ -193,7 +199,7 @@ fn an_atomic_file_appears_only_when_committed_and_leaves_nothing_when_dropped() 
     assert_eq!(std::fs::read(&path).unwrap(), b"old");
     assert!(!staging().iter().any(|p| p.starts_with(dir.path())));
 
-    let mut done = AtomicFile::create(&path).unwrap();
+    let mut done = create(&path).unwrap();
     done.writer().write_all(b"new bytes").unwrap();
     assert_eq!(
         std::fs::read(&path).unwrap(),
@@ -206,6 +212,66 @@ fn an_atomic_file_appears_only_when_committed_and_leaves_nothing_when_dropped() 
     assert!(!staging().iter().any(|p| p.starts_with(dir.path())));
 
     let missing = dir.path().join("no such folder").join("x.png");
-    let err = AtomicFile::create(&missing).err().unwrap().to_string();
+    let err = create(&missing).err().unwrap().to_string();
     assert!(err.contains("x.png"), "{err}");
+}
+
+/// A [`DirectFile`] in blocks of 4096 bytes, given writes of many sizes, seeks back before the
+/// block being filled (patches), seeks past the end (gaps of zeros) and seeks from the end,
+/// holds what an in-memory file given the same calls holds.
+#[test]
+fn a_direct_file_holds_what_a_file_in_memory_holds_after_the_same_writes_and_seeks() {
+    use std::io::{Cursor, Seek, SeekFrom};
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("direct.bin");
+    let mut state = 12345u64;
+    let mut next = |n: u64| {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (state >> 33) % n
+    };
+    for round in 0..6 {
+        let mut direct = DirectFile::with_block_size(&path, 4096).unwrap();
+        let mut memory = Cursor::new(Vec::new());
+        for step in 0..300 {
+            let seek = match next(10) {
+                0 => Some(SeekFrom::Start(next(memory.get_ref().len() as u64 + 1))),
+                1 => Some(SeekFrom::Current(next(9000) as i64)),
+                2 => Some(SeekFrom::End(
+                    -(next(memory.get_ref().len() as u64 + 1) as i64),
+                )),
+                _ => None,
+            };
+            if let Some(to) = seek {
+                assert_eq!(direct.seek(to).unwrap(), memory.seek(to).unwrap());
+            }
+            // Up to three blocks at once, and sometimes exactly to a block's end.
+            let len = match next(4) {
+                0 => 4096 - (memory.position() % 4096) as usize,
+                _ => next(3 * 4096) as usize,
+            };
+            let bytes: Vec<u8> = (0..len).map(|i| (i as u64 + step + round) as u8).collect();
+            direct.write_all(&bytes).unwrap();
+            memory.write_all(&bytes).unwrap();
+        }
+        // The last seek leaves the position where it is: the length is the furthest write.
+        let end = memory.get_ref().len() as u64;
+        direct.seek(SeekFrom::Start(end + 100)).unwrap();
+        drop(direct.finish().unwrap());
+        let on_disk = fs::read(&path).unwrap();
+        assert_eq!(on_disk.len(), memory.get_ref().len(), "round {round}");
+        assert!(on_disk == *memory.get_ref(), "round {round}: bytes differ");
+    }
+}
+
+/// A seek before the start is refused, as a file's is.
+#[test]
+fn a_direct_file_refuses_a_seek_before_its_start() {
+    use std::io::{Seek, SeekFrom};
+    let dir = tempfile::tempdir().unwrap();
+    let mut direct = DirectFile::create(&dir.path().join("x")).unwrap();
+    direct.write_all(b"abc").unwrap();
+    assert!(direct.seek(SeekFrom::Current(-4)).is_err());
+    assert_eq!(direct.seek(SeekFrom::End(-3)).unwrap(), 0);
 }

@@ -109,6 +109,12 @@ pub const MAP_STAGES: [&str; 10] = [
     "sync confidence.exr",
 ];
 
+/// The least map size (pixels) whose files are written past the page cache
+/// ([`AtomicFile::create_uncached`]): from there a solve writes tens of megabytes or more, which
+/// the kernel would first copy into pages it must take and clear. A small map's files cost
+/// little either way, and buffered they do not wait for the disk.
+const UNCACHED_MAP_MIN_PIXELS: usize = 1 << 20;
+
 /// One map file to write: its name, and whether it is asked for.
 #[derive(Clone, Copy, PartialEq)]
 enum MapFile {
@@ -154,7 +160,11 @@ pub fn write_maps_timed(
             .par_iter()
             .map(|&file| {
                 let path = dir.join(file.name());
-                let mut out = AtomicFile::create(&path)?;
+                let mut out = if result.width * result.height >= UNCACHED_MAP_MIN_PIXELS {
+                    AtomicFile::create_uncached(&path)?
+                } else {
+                    AtomicFile::create(&path)?
+                };
                 busy.time(&format!("write {}", file.name()), || {
                     encode_map_into(out.writer(), result, file, &path, options)
                 })?;
@@ -189,7 +199,7 @@ pub fn write_maps_timed(
 
 /// One map's file bytes, written to `out`.
 fn encode_map_into(
-    out: &mut std::io::BufWriter<std::fs::File>,
+    out: &mut (impl std::io::Write + std::io::Seek),
     result: &SolveResult,
     file: MapFile,
     path: &Path,
@@ -254,6 +264,61 @@ fn encode_map_into(
             // stored as they are: 16 MP takes 290 MB, where RLE over six f32 channels took
             // 265 MB and most of a second to encode.
             crate::io::encode_exr_samples_into(out, path, (w, h), channels, ExrCompression::None)
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solve::PixelStatus;
+
+    /// A map large enough to be written past the page cache, in several of its blocks: each
+    /// file holds the bytes its encoder writes into memory.
+    #[test]
+    fn large_maps_written_past_the_page_cache_are_the_encoders_bytes() {
+        let (w, h) = (1024, 1024 + 37);
+        assert!(w * h >= UNCACHED_MAP_MIN_PIXELS);
+        let mut result = SolveResult::new(w, h);
+        let mut state = 7u32;
+        let mut next = || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (state >> 8) as f32 / (1u32 << 24) as f32
+        };
+        for i in 0..w * h {
+            for c in 0..3 {
+                result.normal[c].data[i] = next() * 2.0 - 1.0;
+                result.albedo[c].data[i] = next();
+            }
+            result.residual.data[i] = next();
+            result.lights_used[i] = (i % 11) as u8;
+            if i % 9 != 0 {
+                result.status[i] = PixelStatus::Solved;
+            }
+        }
+        let options = MapOptions {
+            report_html: false,
+            ..MapOptions::default()
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let written = write_maps(&result, dir.path(), &options).unwrap();
+        let files = [
+            (MapFile::NormalPng, written.normal_png.unwrap()),
+            (MapFile::AlbedoPng, written.albedo_png.unwrap()),
+            (MapFile::NormalExr, written.normal_exr.unwrap()),
+            (MapFile::AlbedoExr, written.albedo_exr.unwrap()),
+            (MapFile::Confidence, written.confidence_exr),
+        ];
+        for (file, path) in files {
+            let mut memory = std::io::Cursor::new(Vec::new());
+            encode_map_into(&mut memory, &result, file, &path, &options).unwrap();
+            let on_disk = std::fs::read(&path).unwrap();
+            assert!(
+                on_disk.len() > 2 * crate::fsutil::DIRECT_BLOCK,
+                "{}",
+                file.name()
+            );
+            assert!(on_disk == memory.into_inner(), "{} differs", file.name());
         }
     }
 }
