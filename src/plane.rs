@@ -6,7 +6,7 @@ mod dn;
 
 use rayon::prelude::*;
 
-pub use dn::{Dark, DnSamples};
+pub use dn::{Dark, DnMosaic, DnSamples};
 
 use crate::error::{Error, Result};
 
@@ -296,6 +296,9 @@ pub struct LightFrame {
     /// A dn16 frame kept as its 16-bit samples, linearised where read; `rgb`'s planes are
     /// then empty.
     pub dn: Option<DnSamples>,
+    /// With `cfa`, the own CFA samples kept as the RAW frame's DN, linearised where read;
+    /// `rgb`'s planes are then all empty.
+    pub cfa_dn: Option<DnMosaic>,
 }
 
 impl LightFrame {
@@ -306,6 +309,7 @@ impl LightFrame {
             saturated,
             cfa: None,
             dn: None,
+            cfa_dn: None,
         }
     }
 
@@ -317,6 +321,7 @@ impl LightFrame {
             saturated,
             cfa: None,
             dn: Some(samples),
+            cfa_dn: None,
         }
     }
 
@@ -341,17 +346,47 @@ impl LightFrame {
             saturated,
             cfa: Some(cfa),
             dn: None,
+            cfa_dn: None,
+        }
+    }
+
+    /// [`Self::from_cfa`] with the own samples kept as DN (see [`DnMosaic`]); all of `rgb`'s
+    /// planes are left empty.
+    pub fn from_cfa_dn(samples: DnMosaic, saturated: Option<Mask>, cfa: CfaColour) -> Self {
+        LightFrame {
+            rgb: RgbPlanes::empty(),
+            saturated,
+            cfa: Some(cfa),
+            dn: None,
+            cfa_dn: Some(samples),
+        }
+    }
+
+    /// Pixel `i` (at `x`, `y`)'s own CFA sample, for a frame stored as one (`cfa`).
+    #[inline(always)]
+    pub fn cfa_sample(&self, i: usize, x: usize, y: usize) -> f32 {
+        match &self.cfa_dn {
+            Some(dn) => dn.value(x, y),
+            None => self.rgb.g.data[i],
         }
     }
 
     /// Width in pixels.
     pub fn width(&self) -> usize {
-        self.dn.as_ref().map_or(self.rgb.g.width, |d| d.width)
+        match (&self.dn, &self.cfa_dn) {
+            (Some(d), _) => d.width,
+            (None, Some(d)) => d.width,
+            (None, None) => self.rgb.g.width,
+        }
     }
 
     /// Height in pixels.
     pub fn height(&self) -> usize {
-        self.dn.as_ref().map_or(self.rgb.g.height, |d| d.height)
+        match (&self.dn, &self.cfa_dn) {
+            (Some(d), _) => d.height,
+            (None, Some(d)) => d.height,
+            (None, None) => self.rgb.g.height,
+        }
     }
 
     /// The three channels of pixel (`x`, `y`), however the frame stores them.
@@ -359,7 +394,7 @@ impl LightFrame {
     pub fn rgb_at(&self, x: usize, y: usize) -> [f32; 3] {
         let i = y * self.width() + x;
         match (&self.cfa, &self.dn) {
-            (Some(cfa), _) => cfa.rgb(self.rgb.g.data[i], i, cfa.own(x, y)),
+            (Some(cfa), _) => cfa.rgb(self.cfa_sample(i, x, y), i, cfa.own(x, y)),
             (None, Some(dn)) => std::array::from_fn(|c| dn.value(c, i)),
             (None, None) => [self.rgb.r.data[i], self.rgb.g.data[i], self.rgb.b.data[i]],
         }
@@ -454,9 +489,17 @@ impl Frames {
             };
             let planes = match (&frame.cfa, &frame.dn) {
                 (None, None) => frame.rgb.channels().to_vec(),
-                (Some(cfa), _) => std::iter::once(&frame.rgb.g)
-                    .chain(cfa.ratios.channels())
-                    .collect(),
+                (Some(cfa), _) => {
+                    if let Some(dn) = &frame.cfa_dn {
+                        if (dn.width, dn.height) != (self.width, self.height) {
+                            return Err(wrong_size(dn.width, dn.height));
+                        }
+                        dn.check_size()
+                            .map_err(|e| Error::Invalid(format!("frame for light {k} {e}")))?;
+                    }
+                    let own = frame.cfa_dn.is_none().then_some(&frame.rgb.g);
+                    own.into_iter().chain(cfa.ratios.channels()).collect()
+                }
                 (None, Some(dn)) => {
                     if (dn.width, dn.height) != (self.width, self.height) {
                         return Err(wrong_size(dn.width, dn.height));

@@ -167,12 +167,7 @@ fn frames(case: &Case) -> Frames {
                     plane.data[i] = value.min(1.0) as f32;
                 }
             }
-            LightFrame {
-                rgb,
-                saturated: Some(saturated),
-                cfa: None,
-                dn: None,
-            }
+            LightFrame::from_rgb(rgb, Some(saturated))
         })
         .collect();
     Frames {

@@ -17,6 +17,7 @@ pub fn input_bytes(frames: &Frames) -> usize {
                 + f.dn
                     .as_ref()
                     .map_or(0, |d| d.dn.iter().map(Vec::len).sum::<usize>() * 2)
+                + f.cfa_dn.as_ref().map_or(0, |d| d.dn.len() * 2)
                 + f.saturated.as_ref().map_or(0, |m| m.data.len())
         })
         .sum()
@@ -36,7 +37,8 @@ pub fn read_all(frames: &Frames) -> f64 {
                 for plane in f.rgb.channels().into_iter().filter(|p| !p.data.is_empty()) {
                     sum_row(&plane.data[y * w..(y + 1) * w], &mut acc);
                 }
-                for dn in f.dn.iter().flat_map(|d| &d.dn) {
+                let cfa_dn = f.cfa_dn.iter().map(|d| &d.dn);
+                for dn in f.dn.iter().flat_map(|d| &d.dn).chain(cfa_dn) {
                     let sum: u32 = dn[y * w..(y + 1) * w].iter().map(|&v| v as u32).sum();
                     acc[0] += sum as f32;
                 }

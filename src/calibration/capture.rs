@@ -426,6 +426,7 @@ fn bin_frames(frames: Frames, step: f64) -> Result<Frames> {
                 saturated,
                 cfa: None,
                 dn: None,
+                cfa_dn: None,
             })
         })
         .collect::<Result<Vec<_>>>()?;

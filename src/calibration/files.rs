@@ -148,6 +148,7 @@ pub fn load_linear(path: &Path, levels: &Levels) -> Result<LightFrame> {
                 saturated: Some(saturated),
                 cfa: None,
                 dn: None,
+                cfa_dn: None,
             })
         }
         "png" | "tif" | "tiff" => Ok(read_dn_image(path)?.to_light_frame(levels)),

@@ -106,6 +106,7 @@ mod tests {
                         saturated: None,
                         cfa: None,
                         dn: None,
+                        cfa_dn: None,
                     }
                 })
                 .collect(),

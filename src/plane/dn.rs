@@ -1,5 +1,6 @@
 //! A dn16 frame kept as the 16-bit digital numbers it was stored as, linearised where it is
-//! read: half the memory of `f32` planes. At 16 MP an 11-frame dn16 set held 2.1 GB of `f32`
+//! read: half the memory of `f32` planes (and a RAW frame's CFA samples kept the same way,
+//! [`DnMosaic`]). At 16 MP an 11-frame dn16 set held 2.1 GB of `f32`
 //! planes, and on a virtual machine most of decoding it was the kernel zeroing those fresh
 //! pages (perf: a quarter of the whole solve's CPU samples in `clear_page_erms`).
 
@@ -140,6 +141,97 @@ impl DnSamples {
             ));
         }
         Ok(())
+    }
+}
+
+/// A RAW frame's CFA samples (one per pixel, whatever its channel) kept as the DN they were
+/// decoded as, linearised where read: 2 bytes a sample where `f32` samples took 4, and no
+/// second pass over the frame to write them. At 16 MP an 11-frame DNG stack held 700 MB of
+/// `f32` samples, all of it fresh memory (see `alloc`).
+///
+/// Sample (`x`, `y`) is `(dn - black) * scale` with its CFA site's `black` and `scale`, in
+/// `f32`, less the dark frame's linear sample there when one is attached: every bit what
+/// `raw::pass` computes into `f32` samples and then subtracts.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DnMosaic {
+    /// Width in samples.
+    pub width: usize,
+    /// Height in samples.
+    pub height: usize,
+    /// The samples in DN, row after row.
+    pub dn: Vec<u16>,
+    /// Per CFA site (`[row parity][column parity]`): the DN of linear 0, and
+    /// `1 / (white - black)`.
+    pub sites: [[(f32, f32); 2]; 2],
+    /// The dark frame's linear samples, subtracted where read; shared by a stack's frames.
+    pub dark: Option<Arc<Vec<f32>>>,
+}
+
+impl DnMosaic {
+    /// The linear value of `dn` at (`x`, `y`), before any dark frame.
+    #[inline(always)]
+    pub fn linear(&self, dn: u16, x: usize, y: usize) -> f32 {
+        let (black, scale) = self.sites[y & 1][x & 1];
+        (dn as f32 - black) * scale
+    }
+
+    /// Sample (`x`, `y`), the dark frame subtracted.
+    #[inline(always)]
+    pub fn value(&self, x: usize, y: usize) -> f32 {
+        let i = y * self.width + x;
+        let v = self.linear(self.dn[i], x, y);
+        match &self.dark {
+            Some(dark) => v - dark[i],
+            None => v,
+        }
+    }
+
+    /// Row `y`'s samples, the dark frame subtracted, into `out` (`width` long). Pairs of
+    /// sites at a time, so that the loop vectorises.
+    pub fn row_into(&self, y: usize, out: &mut [f32]) {
+        let w = self.width;
+        let row = &self.dn[y * w..(y + 1) * w];
+        let [(b0, s0), (b1, s1)] = self.sites[y & 1];
+        for (v, dn) in out.chunks_exact_mut(2).zip(row.chunks_exact(2)) {
+            (v[0], v[1]) = ((dn[0] as f32 - b0) * s0, (dn[1] as f32 - b1) * s1);
+        }
+        if w % 2 == 1 {
+            out[w - 1] = self.linear(row[w - 1], w - 1, y);
+        }
+        if let Some(dark) = &self.dark {
+            for (v, d) in out[..w].iter_mut().zip(&dark[y * w..(y + 1) * w]) {
+                *v -= d;
+            }
+        }
+    }
+
+    /// Starts loading the cache lines at sample `i` (not the dark frame's, which the frames
+    /// of a stack share).
+    #[inline(always)]
+    pub fn prefetch(&self, i: usize) {
+        prefetch_at(&self.dn, i);
+    }
+
+    /// Checks the samples' count (and the dark frame's) against the size.
+    pub fn check_size(&self) -> std::result::Result<(), String> {
+        let n = self.width * self.height;
+        if self.dn.len() != n {
+            return Err(format!(
+                "has {} samples, its size {}x{} needs {n}",
+                self.dn.len(),
+                self.width,
+                self.height
+            ));
+        }
+        match &self.dark {
+            Some(dark) if dark.len() != n => Err(format!(
+                "has a dark frame of {} samples, its size {}x{} needs {n}",
+                dark.len(),
+                self.width,
+                self.height
+            )),
+            _ => Ok(()),
+        }
     }
 }
 

@@ -11,7 +11,7 @@ use rayon::prelude::*;
 
 use super::decode::{decode_raw_keeping, DecodedRaw, RawMeta};
 use super::linear::{decode_dn_frame, Levels};
-use super::mosaic::{subtract_dark, DarkFrame, LinearMosaic, Resolution};
+use super::mosaic::{subtract_dark, DarkFrame, LinearMosaic, Resolution, SharedDark};
 use super::pass::{self, LinearPass, SampleCounts};
 use super::shading::ShadingField;
 use super::stack::develop_stack;
@@ -105,6 +105,9 @@ pub struct RawPrep<'a> {
     pub pass: LinearPass<'a>,
     /// Bin 2x2 in the pass (half resolution).
     pub bin: bool,
+    /// Keep the samples as their DN, linearised where read (`pass::keep_dn`): the light
+    /// frames of a full-resolution stack, whose samples are read a row at a time.
+    pub keep_dn: bool,
 }
 
 /// Decodes and linearises one frame. `dn16_levels` linearise dn16 frames; RAW frames carry
@@ -129,7 +132,17 @@ pub fn decode_frame(
 /// The stages [`decode_codec`] and [`finish_decode`] record: the RAW codec (rawler), the
 /// linearisation to `f32` (black and white level), the pass that also subtracts the dark
 /// frame and bins (`RawPrep::bin`), and a dn16 frame's decode, linearised as it is inflated.
-pub const DECODE_STAGES: [&str; 4] = ["decode", "linearize", BINNING_PASS_STAGE, DN16_DECODE_STAGE];
+pub const DECODE_STAGES: [&str; 5] = [
+    "decode",
+    "linearize",
+    BINNING_PASS_STAGE,
+    DN16_DECODE_STAGE,
+    KEEP_DN_STAGE,
+];
+
+/// The stage name of the pass over a light frame kept as DN (`pass::keep_dn`): its
+/// saturation flags and plausibility counts.
+pub const KEEP_DN_STAGE: &str = "flag saturation";
 
 /// The stage name of a dn16 frame's decode, which linearises its rows as they are inflated.
 pub const DN16_DECODE_STAGE: &str = "decode + linearize";
@@ -153,6 +166,7 @@ impl<'a> RawPrep<'a> {
                 below_black_floor: dark.and_then(below_black_floor),
             },
             bin,
+            keep_dn: !bin,
         }
     }
 }
@@ -223,25 +237,36 @@ pub fn finish_decode(
         Coded::Done(frame) => return Ok(*frame),
         Coded::Raw(raw) => raw,
     };
+    let levels = Levels {
+        black: raw.mosaic.mean_black(),
+        white: raw.mosaic.white as f64,
+    };
+    let cfa_pattern = Some(raw.mosaic.pattern_name());
+    let stored_size = (raw.mosaic.width, raw.mosaic.height);
+    let DecodedRaw {
+        mosaic,
+        meta,
+        camera_to_srgb,
+    } = *raw;
     let (data, counts) = if prep.bin {
-        busy.time(BINNING_PASS_STAGE, || pass::bin2x2(&raw.mosaic, prep.pass))
+        busy.time(BINNING_PASS_STAGE, || pass::bin2x2(&mosaic, prep.pass))
             .map(|(frame, counts)| (FrameData::Binned(frame), counts))
+    } else if prep.keep_dn && prep.pass.dark.is_none() {
+        busy.time(KEEP_DN_STAGE, || pass::keep_dn(mosaic, prep.pass))
+            .map(|(mosaic, counts)| (FrameData::Mosaic(mosaic), counts))
     } else {
-        busy.time("linearize", || pass::linearize(&raw.mosaic, prep.pass))
+        busy.time("linearize", || pass::linearize(&mosaic, prep.pass))
             .map(|(mosaic, counts)| (FrameData::Mosaic(mosaic), counts))
     }
     .map_err(|e| Error::image(path, e))?;
     Ok(DecodedFrame {
         data,
         counts,
-        levels: Levels {
-            black: raw.mosaic.mean_black(),
-            white: raw.mosaic.white as f64,
-        },
-        cfa_pattern: Some(raw.mosaic.pattern_name()),
-        stored_size: (raw.mosaic.width, raw.mosaic.height),
-        meta: Some(raw.meta),
-        camera_to_srgb: raw.camera_to_srgb,
+        levels,
+        cfa_pattern,
+        stored_size,
+        meta: Some(meta),
+        camera_to_srgb,
     })
 }
 
@@ -325,9 +350,13 @@ pub fn develop_frames_timed(
         let FrameData::Mosaic(dark) = dark.data else {
             return Err(Error::Invalid("an RGB dark frame in a RAW set".into()));
         };
-        // Each frame independently: one per core.
+        // Each frame independently: one per core. Frames kept as DN share the dark frame's
+        // samples and subtract them where read.
         clock.time(DARK_STAGE, || {
-            mosaics.par_iter_mut().try_for_each(|m| m.subtract(&dark))
+            let dark = SharedDark::of(dark)?;
+            mosaics
+                .par_iter_mut()
+                .try_for_each(|m| m.subtract_shared(&dark))
         })?;
     }
     let stage = match resolution {
@@ -555,6 +584,7 @@ mod tests {
                 saturated: None,
                 cfa: None,
                 dn: None,
+                cfa_dn: None,
             }),
             meta: None,
             levels: Levels {

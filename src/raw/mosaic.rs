@@ -29,7 +29,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::plane::{Dark, LightFrame, Mask, RgbPlanes, SensorWindow};
+use crate::plane::{Dark, DnMosaic, LightFrame, Mask, RgbPlanes, SensorWindow};
 
 /// Index of the red channel (the channel indices are those of `RgbPlanes`).
 pub const RED: u8 = 0;
@@ -215,14 +215,41 @@ pub struct LinearMosaic {
     pub height: usize,
     /// The CFA pattern, as [`Mosaic::pattern`].
     pub pattern: [[u8; 2]; 2],
-    /// Linear samples, row-major: 0 at the site's black level, 1.0 at the white level.
+    /// Linear samples, row-major: 0 at the site's black level, 1.0 at the white level; empty
+    /// when `dn` keeps them.
     pub values: Vec<f32>,
     /// Per sample, whether the raw value was at or near the white level (see
     /// [`Mosaic::saturation_threshold`]).
     pub saturated: Vec<bool>,
+    /// The samples kept as the DN they were decoded as, linearised where read (a light frame
+    /// of a full-resolution stack, see `raw::pass::keep_dn`); `values` is then empty. Read
+    /// the samples with [`LinearMosaic::value`] and [`LinearMosaic::row`], which serve both.
+    pub dn: Option<DnMosaic>,
 }
 
 impl LinearMosaic {
+    /// Sample `i` (row-major), linear, the dark frame subtracted.
+    #[inline]
+    pub fn value(&self, i: usize) -> f32 {
+        match &self.dn {
+            Some(dn) => dn.value(i % self.width, i / self.width),
+            None => self.values[i],
+        }
+    }
+
+    /// Row `y`'s samples: borrowed from `values`, or linearised from the DN into `scratch`.
+    pub fn row<'a>(&'a self, y: usize, scratch: &'a mut Vec<f32>) -> &'a [f32] {
+        let w = self.width;
+        match &self.dn {
+            Some(dn) => {
+                scratch.resize(w, 0.0);
+                dn.row_into(y, scratch);
+                scratch
+            }
+            None => &self.values[y * w..(y + 1) * w],
+        }
+    }
+
     /// Channel of the sample at `(x, y)`.
     #[inline]
     pub fn channel(&self, x: usize, y: usize) -> usize {
@@ -231,12 +258,23 @@ impl LinearMosaic {
 
     /// Subtracts a dark frame sample by sample; a sample saturated in either is saturated.
     pub fn subtract(&mut self, dark: &LinearMosaic) -> Result<()> {
-        dark.check_same_layout(self.width, self.height, self.pattern)?;
-        self.values
-            .par_iter_mut()
-            .zip(&dark.values)
-            .for_each(|(v, d)| *v -= d);
-        for (s, d) in self.saturated.iter_mut().zip(&dark.saturated) {
+        self.subtract_shared(&SharedDark::of(dark.clone())?)
+    }
+
+    /// [`LinearMosaic::subtract`] with a dark frame the frames of a stack share: a frame that
+    /// keeps its DN keeps the dark frame's samples too, and subtracts them where read.
+    pub fn subtract_shared(&mut self, dark: &SharedDark) -> Result<()> {
+        dark.layout
+            .check_same_layout(self.width, self.height, self.pattern)?;
+        match &mut self.dn {
+            Some(dn) => dn.dark = Some(Arc::clone(&dark.values)),
+            None => self
+                .values
+                .par_iter_mut()
+                .zip(dark.values.as_slice())
+                .for_each(|(v, d)| *v -= d),
+        }
+        for (s, d) in self.saturated.iter_mut().zip(&dark.layout.saturated) {
             *s |= *d;
         }
         Ok(())
@@ -270,9 +308,33 @@ impl LinearMosaic {
             (self.width, self.height),
             self.pattern,
             || (),
-            |x, y, _| (self.values[y * width + x], self.saturated[y * width + x]),
+            |x, y, _| (self.value(y * width + x), self.saturated[y * width + x]),
         );
         frame
+    }
+}
+
+/// A dark frame as the light frames of a stack subtract it: its linear samples shared, so that
+/// frames kept as DN hold one copy between them.
+pub struct SharedDark {
+    /// The frame's size, pattern and saturation flags (its `values` moved to `values`).
+    layout: LinearMosaic,
+    values: Arc<Vec<f32>>,
+}
+
+impl SharedDark {
+    /// `dark`'s samples, shared; a dark frame must be linearised (not kept as DN).
+    pub fn of(mut dark: LinearMosaic) -> Result<SharedDark> {
+        if dark.dn.is_some() {
+            return Err(Error::Invalid(
+                "a dark frame is subtracted as linear samples, not kept as DN".into(),
+            ));
+        }
+        let values = Arc::new(std::mem::take(&mut dark.values));
+        Ok(SharedDark {
+            layout: dark,
+            values,
+        })
     }
 }
 
@@ -329,6 +391,7 @@ pub(super) fn bin_cells<A: Send>(
         saturated: Some(saturated),
         cfa: None,
         dn: None,
+        cfa_dn: None,
     };
     (frame, accs)
 }

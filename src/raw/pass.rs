@@ -17,7 +17,7 @@ use rayon::prelude::*;
 
 use super::mosaic::{bin_cells, LinearMosaic, Mosaic, Resolution};
 use crate::error::Result;
-use crate::plane::LightFrame;
+use crate::plane::{DnMosaic, LightFrame};
 
 /// What a pass counted over a light frame's own samples (before any dark frame is
 /// subtracted), for `develop::check_plausible`.
@@ -181,6 +181,56 @@ pub fn linearize(mosaic: &Mosaic, pass: LinearPass) -> Result<(LinearMosaic, Sam
         pattern: mosaic.pattern,
         values,
         saturated,
+        dn: None,
+    };
+    Ok((linear, counts))
+}
+
+/// [`linearize`] for a light frame of a full-resolution stack: the samples stay the DN they
+/// were decoded as (moved out of `mosaic`), linearised where they are read ([`DnMosaic`], the
+/// same arithmetic, so the same bits); only the saturation flags are written, and the counts
+/// taken. A dark frame is subtracted later (`LinearMosaic::subtract_shared`), so `pass.dark`
+/// must be `None`.
+pub fn keep_dn(mosaic: Mosaic, pass: LinearPass) -> Result<(LinearMosaic, SampleCounts)> {
+    mosaic.validate()?;
+    assert!(
+        pass.dark.is_none(),
+        "a frame kept as DN subtracts its dark frame where read"
+    );
+    let sites = Sites::of(&mosaic);
+    let w = mosaic.width;
+    let mut saturated = vec![false; mosaic.samples.len()];
+    let dn = DnMosaic {
+        width: mosaic.width,
+        height: mosaic.height,
+        dn: mosaic.samples,
+        sites: sites.scales,
+        dark: None,
+    };
+    let counts = saturated
+        .par_chunks_mut(w)
+        .enumerate()
+        .map_init(Vec::new, |values, (y, sat)| {
+            let mut counts = empty_counts(&pass, w);
+            let row = &dn.dn[y * w..(y + 1) * w];
+            for (s, &raw) in sat.iter_mut().zip(row) {
+                *s = raw as f32 >= sites.threshold;
+            }
+            if pass.below_black_floor.is_some() {
+                values.resize(w, 0.0);
+                dn.row_into(y, values);
+            }
+            count_row(&mut counts, values, sat, pass.below_black_floor);
+            counts
+        })
+        .reduce(|| empty_counts(&pass, 0), SampleCounts::plus);
+    let linear = LinearMosaic {
+        width: mosaic.width,
+        height: mosaic.height,
+        pattern: mosaic.pattern,
+        values: Vec::new(),
+        saturated,
+        dn: Some(dn),
     };
     Ok((linear, counts))
 }
@@ -300,6 +350,46 @@ mod tests {
                         );
                     }
                     assert_eq!(binned.saturated, expected.saturated);
+                }
+            }
+        }
+    }
+
+    /// A frame kept as DN reads, sample by sample and row by row, the bits `linearize` writes,
+    /// with the same saturation flags and counts, before and after a shared dark frame is
+    /// subtracted.
+    #[test]
+    fn a_frame_kept_as_dn_reads_what_linearize_writes_bit_for_bit() {
+        use super::super::mosaic::SharedDark;
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for (w, h) in [(34, 30), (33, 31), (2, 3)] {
+            for pattern in ["RGGB", "GBRG"] {
+                let light = mosaic(w, h, pattern, 7);
+                let dark = SharedDark::of(mosaic(w, h, pattern, 11).linearize().unwrap()).unwrap();
+                for floor in [None, Some(-0.01f32)] {
+                    let pass = LinearPass {
+                        dark: None,
+                        below_black_floor: floor,
+                    };
+                    let (linear, counts) = linearize(&light, pass).unwrap();
+                    let (kept, kept_counts) = keep_dn(light.clone(), pass).unwrap();
+                    assert!(kept.values.is_empty() && kept.dn.is_some());
+                    assert_eq!(kept_counts, counts, "{w}x{h} {pattern}");
+                    for subtract in [false, true] {
+                        let (mut linear, mut kept) = (linear.clone(), kept.clone());
+                        if subtract {
+                            linear.subtract_shared(&dark).unwrap();
+                            kept.subtract_shared(&dark).unwrap();
+                        }
+                        assert_eq!(kept.saturated, linear.saturated);
+                        let mut scratch = Vec::new();
+                        for y in 0..h {
+                            let want = bits(&linear.values[y * w..(y + 1) * w]);
+                            assert_eq!(bits(kept.row(y, &mut scratch)), want, "row {y}");
+                            let each: Vec<f32> = (0..w).map(|x| kept.value(y * w + x)).collect();
+                            assert_eq!(bits(&each), want, "row {y}, sample by sample");
+                        }
+                    }
                 }
             }
         }

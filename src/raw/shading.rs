@@ -316,7 +316,7 @@ impl<'a> SiteFitter<'a> {
             let (c, t) = field.locate(x, field.nx, field.width);
             let cell = &cells[c];
             let own = pattern[y % 2][x % 2] as usize;
-            let value = |k: usize| frames[k].values[i] as f64 * inverse[k][own];
+            let value = |k: usize| frames[k].value(i) as f64 * inverse[k][own];
             samples.clear();
             samples.extend(
                 (0..n)
@@ -447,6 +447,8 @@ fn fit_run_portable(
 /// most of a second at 16 MP. The sums are the same, in the same order, as a site at a time.
 #[derive(Default)]
 struct RowSums {
+    /// Frame k's samples of the row, where it keeps them as DN.
+    values: Vec<f32>,
     /// Frame k's white-balanced samples of the row.
     balanced: Vec<f64>,
     start: [Vec<f64>; 3],
@@ -475,11 +477,8 @@ impl RowSums {
         for (k, frame) in frames.iter().enumerate() {
             let row = y * w..(y + 1) * w;
             let inv = pattern.map(|c| inverse[k][c]);
-            for (pair, values) in self
-                .balanced
-                .chunks_mut(2)
-                .zip(frame.values[row.clone()].chunks(2))
-            {
+            let values = frame.row(y, &mut self.values);
+            for (pair, values) in self.balanced.chunks_mut(2).zip(values.chunks(2)) {
                 for (b, (&v, inv)) in pair.iter_mut().zip(values.iter().zip(inv)) {
                     *b = v as f64 * inv;
                 }
@@ -668,6 +667,7 @@ mod tests {
                 pattern: [[0, 1], [1, 2]],
                 values: (0..w * h).map(|_| rng.gen_range(0.0..1.0)).collect(),
                 saturated: (0..w * h).map(|_| rng.gen_range(0..12) == 0).collect(),
+                dn: None,
             })
             .collect();
         let sums: Vec<f32> = (0..w * h)

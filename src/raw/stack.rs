@@ -104,15 +104,17 @@ fn develop_full(
     let (w, h, pattern) = (first.width, first.height, first.pattern);
     // The white-balanced sum of the stack, and its colour at every pixel.
     let mut sum = vec![0.0f32; w * h];
-    sum.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (k, frame) in frames.iter().enumerate() {
-            let values = &frame.values[y * w..(y + 1) * w];
-            let inv = colours[k].map(|g| 1.0 / g);
-            for x in 0..w {
-                row[x] += values[x] * inv[pattern[y % 2][x % 2] as usize];
+    sum.par_chunks_mut(w)
+        .enumerate()
+        .for_each_init(Vec::new, |scratch, (y, row)| {
+            for (k, frame) in frames.iter().enumerate() {
+                let values = frame.row(y, scratch);
+                let inv = colours[k].map(|g| 1.0 / g);
+                for x in 0..w {
+                    row[x] += values[x] * inv[pattern[y % 2][x % 2] as usize];
+                }
             }
-        }
-    });
+        });
     // Below this the stack's own-channel sum is noise (a fraction of a DN per frame): the
     // pixel is black in every frame and its colour ratios mean nothing.
     let floor = 1e-5 * frames.len() as f32;
@@ -130,19 +132,24 @@ fn develop_full(
         .into_iter()
         .zip(colours)
         .map(|(frame, colour)| {
-            LightFrame::from_cfa(
-                Plane::from_vec(w, h, frame.values).expect("a mosaic's samples fill it"),
-                Some(Mask {
-                    width: w,
-                    height: h,
-                    data: frame.saturated,
-                }),
-                CfaColour {
-                    pattern,
-                    ratios: Arc::clone(&ratios),
-                    colour: *colour,
-                },
-            )
+            let saturated = Some(Mask {
+                width: w,
+                height: h,
+                data: frame.saturated,
+            });
+            let cfa = CfaColour {
+                pattern,
+                ratios: Arc::clone(&ratios),
+                colour: *colour,
+            };
+            match frame.dn {
+                Some(dn) => LightFrame::from_cfa_dn(dn, saturated, cfa),
+                None => LightFrame::from_cfa(
+                    Plane::from_vec(w, h, frame.values).expect("a mosaic's samples fill it"),
+                    saturated,
+                    cfa,
+                ),
+            }
         })
         .collect()
 }
@@ -247,10 +254,82 @@ mod tests {
                 pattern,
                 saturated: vec![false; values.len()],
                 values,
+                dn: None,
             });
             truth.push(rgb);
         }
         (frames, illuminants, truth)
+    }
+
+    /// A stack whose frames keep their DN develops, with the shading-preserving demosaic and
+    /// a shared dark frame, into the frames the same stack linearised to `f32` gives, bit for
+    /// bit: the same ratios, samples and saturation flags.
+    #[test]
+    fn a_stack_kept_as_dn_develops_as_its_linear_samples_do() {
+        use super::super::mosaic::SharedDark;
+        use super::super::pass::{keep_dn, linearize, LinearPass};
+        let (w, h) = (45, 70);
+        let lights = 6;
+        let mut state = 3u32;
+        let mut mosaic = |base: u16, spread: u32| Mosaic {
+            width: w,
+            height: h,
+            pattern: Mosaic::parse_pattern("GRBG").unwrap(),
+            black: [[600.0, 604.0], [598.0, 601.0]],
+            white: 15600.0,
+            samples: (0..w * h)
+                .map(|_| {
+                    state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                    base + ((state >> 8) % spread) as u16
+                })
+                .collect(),
+        };
+        // Lights reading up to the white level (some samples clip), and a dark frame.
+        let raw: Vec<Mosaic> = (0..lights).map(|_| mosaic(590, 15200)).collect();
+        let dark = SharedDark::of(mosaic(596, 9).linearize().unwrap()).unwrap();
+        let field = ShadingField::sample(w, h, 8, |x, y| {
+            Ok((0..lights)
+                .map(|k| {
+                    let phi = k as f64;
+                    [
+                        0.5 * phi.cos() - 0.002 * x,
+                        0.5 * phi.sin() + 0.001 * y,
+                        0.8,
+                    ]
+                })
+                .collect())
+        })
+        .unwrap();
+        let illuminants: Vec<[f64; 3]> = (0..lights)
+            .map(|k| [0.6 + 0.02 * k as f64, 1.0, 0.7 - 0.01 * k as f64])
+            .collect();
+        let develop = |keep: bool| {
+            let frames: Vec<LinearMosaic> = (raw.iter())
+                .map(|m| {
+                    let pass = LinearPass::default();
+                    let mut f = match keep {
+                        true => keep_dn(m.clone(), pass).unwrap().0,
+                        false => linearize(m, pass).unwrap().0,
+                    };
+                    f.subtract_shared(&dark).unwrap();
+                    f
+                })
+                .collect();
+            develop_stack(frames, Some(&illuminants), Some(&field), Resolution::Full).unwrap()
+        };
+        let (kept, linear) = (develop(true), develop(false));
+        assert!(kept.iter().all(|f| f.cfa_dn.is_some()));
+        assert!(linear.iter().all(|f| f.cfa_dn.is_none()));
+        for (k, (a, b)) in kept.iter().zip(&linear).enumerate() {
+            assert_eq!(a.saturated, b.saturated, "frame {k}");
+            assert!(a.saturated.as_ref().unwrap().data.contains(&true));
+            for y in 0..h {
+                for x in 0..w {
+                    let bits = |f: &LightFrame| f.rgb_at(x, y).map(f32::to_bits);
+                    assert_eq!(bits(a), bits(b), "frame {k} ({x},{y})");
+                }
+            }
+        }
     }
 
     #[test]

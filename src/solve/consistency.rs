@@ -394,6 +394,7 @@ mod tests {
                     saturated: None,
                     cfa: None,
                     dn: None,
+                    cfa_dn: None,
                 }
             })
             .collect();

@@ -2,7 +2,7 @@
 //! computes in, a vector of lanes whose operations LLVM turns into vector instructions, the
 //! small symmetric-matrix helpers, and the prefetch of the input planes. No solve logic.
 
-use crate::plane::{prefetch_at, Dark, DnSamples, Frames, LightFrame, Plane};
+use crate::plane::{prefetch_at, Dark, DnMosaic, DnSamples, Frames, LightFrame, Plane};
 
 /// Pixels processed together (one vector register of f32 on AVX-512, two on AVX2).
 pub const LANES: usize = 16;
@@ -138,13 +138,13 @@ pub fn prefetch(frames: &Frames, i: usize) {
             .iter()
             .for_each(|p| prefetch_at(&p.data, i));
     }
-    // A dn16 set's frames share their dark frame.
-    let dark = frames
-        .lights
-        .first()
-        .and_then(|f| f.dn.as_ref()?.dark.as_ref());
-    if let Some(dark) = dark {
+    // A dn16 set's frames share their dark frame, and so do a RAW stack's kept as DN.
+    let first = frames.lights.first();
+    if let Some(dark) = first.and_then(|f| f.dn.as_ref()?.dark.as_ref()) {
         dark.prefetch(i);
+    }
+    if let Some(dark) = first.and_then(|f| f.cfa_dn.as_ref()?.dark.as_ref()) {
+        prefetch_at(dark, i);
     }
     for f in &frames.lights {
         f.rgb
@@ -152,6 +152,9 @@ pub fn prefetch(frames: &Frames, i: usize) {
             .iter()
             .for_each(|p| prefetch_at(&p.data, i));
         if let Some(dn) = &f.dn {
+            dn.prefetch(i);
+        }
+        if let Some(dn) = &f.cfa_dn {
             dn.prefetch(i);
         }
         if let Some(m) = &f.saturated {
@@ -213,6 +216,27 @@ fn load_dn<T: Real>(dn: &DnSamples, c: usize, i0: usize) -> [T; LANES] {
     values.map(T::of32)
 }
 
+/// The own CFA samples of the `LANES` pixels of a frame kept as DN from index `i0` (columns
+/// `x`.. of row `y`): the arithmetic of [`DnMosaic::value`], here so that it is compiled into
+/// (and vectorised with) each kernel.
+#[inline(always)]
+fn load_cfa_dn(dn: &DnMosaic, i0: usize, (x, y): (usize, usize)) -> [f32; LANES] {
+    let src: &[u16; LANES] = dn.dn[i0..i0 + LANES].try_into().expect("a whole chunk");
+    let sites = dn.sites[y & 1];
+    let mut values = [0.0f32; LANES];
+    for (l, (v, &s)) in values.iter_mut().zip(src).enumerate() {
+        let (black, scale) = sites[(x + l) & 1];
+        *v = (s as f32 - black) * scale;
+    }
+    if let Some(dark) = &dn.dark {
+        let dark: &[f32; LANES] = dark[i0..i0 + LANES].try_into().expect("a whole chunk");
+        for (v, d) in values.iter_mut().zip(dark) {
+            *v -= d;
+        }
+    }
+    values
+}
+
 /// The R, G, B values of the `LANES` pixels of `frame` from index `i0` (columns `x`.. of row
 /// `y`), in `T`, however the frame stores them (see `LightFrame::cfa`).
 #[inline(always)]
@@ -227,9 +251,13 @@ pub fn load_rgb<T: Real>(frame: &LightFrame, i0: usize, (x, y): (usize, usize)) 
             load(&frame.rgb.b, i0),
         ];
     };
-    let own: &[f32; LANES] = frame.rgb.g.data[i0..i0 + LANES]
-        .try_into()
-        .expect("a whole chunk");
+    let own = match &frame.cfa_dn {
+        Some(dn) => load_cfa_dn(dn, i0, (x, y)),
+        None => frame.rgb.g.data[i0..i0 + LANES]
+            .try_into()
+            .expect("a whole chunk"),
+    };
+    let own = &own;
     let mut out = [[T::zero(); LANES]; 3];
     for (l, &v) in own.iter().enumerate() {
         let rgb = cfa.rgb(v, i0 + l, cfa.own(x + l, y));

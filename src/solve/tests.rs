@@ -255,6 +255,7 @@ fn flat_frames(rig: &Rig, value: f32) -> Frames {
                 saturated: Some(crate::plane::Mask::new(4, 1, false)),
                 cfa: None,
                 dn: None,
+                cfa_dn: None,
             }
         })
         .collect();

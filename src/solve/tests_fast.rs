@@ -473,9 +473,11 @@ fn the_default_screen_sends_few_clean_pixels_to_the_exact_kernel() {
 
 /// `frames` stored as a full-resolution RAW stack is: one sample per pixel (the channel the
 /// RGGB pattern gives it) and colour ratios shared by every frame, from frame 0, with each
-/// frame's own illuminant colour. Returns the stack and the same values as three planes.
-fn as_cfa_stack(frames: &Frames) -> (Frames, Frames) {
-    use crate::plane::{CfaColour, LightFrame, RgbPlanes};
+/// frame's own illuminant colour; with `kept_as_dn`, each sample kept as DN (per-site black
+/// levels, white 15600) over a shared dark frame, as `raw::pass::keep_dn` keeps a DNG's.
+/// Returns the stack and the same values as three planes.
+fn as_cfa_stack(frames: &Frames, kept_as_dn: bool) -> (Frames, Frames) {
+    use crate::plane::{CfaColour, DnMosaic, LightFrame, RgbPlanes};
     let (w, h) = (frames.width, frames.height);
     let pattern = [[0u8, 1], [1, 2]];
     let first = &frames.lights[0].rgb;
@@ -501,15 +503,34 @@ fn as_cfa_stack(frames: &Frames) -> (Frames, Frames) {
                 let own = pattern[(i / w) % 2][(i % w) % 2] as usize;
                 *v = f.rgb.channels()[own].data[i];
             }
-            LightFrame::from_cfa(
-                sample,
-                f.saturated.clone(),
-                CfaColour {
-                    pattern,
-                    ratios: std::sync::Arc::clone(&ratios),
-                    colour: [0.9 + 0.01 * k as f32, 1.0, 1.1 - 0.02 * k as f32],
-                },
-            )
+            let cfa = CfaColour {
+                pattern,
+                ratios: std::sync::Arc::clone(&ratios),
+                colour: [0.9 + 0.01 * k as f32, 1.0, 1.1 - 0.02 * k as f32],
+            };
+            if !kept_as_dn {
+                return LightFrame::from_cfa(sample, f.saturated.clone(), cfa);
+            }
+            let sites =
+                [[600.0f32, 604.0], [598.0, 601.0]].map(|r| r.map(|b| (b, 1.0 / (15600.0 - b))));
+            let dark: Vec<f32> = (0..w * h)
+                .map(|i| 1e-4 * ((i * 7) % 9) as f32 - 2e-4)
+                .collect();
+            let dn = (0..w * h)
+                .map(|i| {
+                    let (black, scale) = sites[(i / w) % 2][(i % w) % 2];
+                    let value = (sample.data[i] + dark[i]) / scale + black;
+                    value.round().clamp(0.0, 65535.0) as u16
+                })
+                .collect();
+            let dn = DnMosaic {
+                width: w,
+                height: h,
+                dn,
+                sites,
+                dark: Some(std::sync::Arc::new(dark)),
+            };
+            LightFrame::from_cfa_dn(dn, f.saturated.clone(), cfa)
         })
         .collect();
     stored_and_planes(frames, lights)
@@ -559,13 +580,19 @@ fn assert_kernels_agree(
 fn a_cfa_stack_solves_as_its_planes_do() {
     let rig = Rig::default_rig();
     let (_, frames) = render_scene(&rig, SceneKind::ShadowsSheen, MP, &Silent).unwrap();
-    let (stack, planes) = as_cfa_stack(&damaged(frames));
+    let frames = damaged(frames);
     let kernels = [
         (SolveOptions::default(), "default"),
         (SolveOptions::exact(Estimator::Adaptive), "exact adaptive"),
         (streaming(Precision::F64, None), "streaming f64"),
     ];
-    assert_kernels_agree(&rig, (&stack, &planes), &kernels, "");
+    for kept_as_dn in [false, true] {
+        let (stack, planes) = as_cfa_stack(&frames, kept_as_dn);
+        let kept = |f: &crate::plane::LightFrame| f.cfa_dn.is_some() && f.rgb.g.data.is_empty();
+        assert!(stack.lights.iter().all(|f| kept(f) == kept_as_dn));
+        let context = format!(", kept as DN: {kept_as_dn}");
+        assert_kernels_agree(&rig, (&stack, &planes), &kernels, &context);
+    }
 }
 
 /// `frames` stored as a dn16 set keeps them: 16-bit DN (black 600, white 15600) over a dark

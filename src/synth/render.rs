@@ -202,6 +202,7 @@ impl<'a> Scene<'a> {
                     saturated: None,
                     cfa: None,
                     dn: None,
+                    cfa_dn: None,
                 }
             })
             .collect();
