@@ -281,8 +281,10 @@ impl RgbPlanes {
 ///
 /// A full-resolution RAW frame stores one sample per pixel and takes its missing channels
 /// from colour ratios that every frame of its stack shares ([`CfaColour`]): ten 16 MP frames
-/// then take 0.8 GB rather than 1.9 GB. Read such a frame's values with [`Self::rgb_at`],
-/// [`CfaColour::rgb`] or [`Self::to_planes`]; its `rgb.r` and `rgb.b` are empty.
+/// then take 0.8 GB rather than 1.9 GB with `f32` samples, and 0.5 GB with the samples kept
+/// as the DN they were decoded as (`cfa_dn`, as a set's loader keeps them). Read such a frame's values with
+/// [`Self::rgb_at`] or [`Self::to_planes`] (or its own sample with [`Self::cfa_sample`], and
+/// the others from it with [`CfaColour::rgb`]); its `rgb.r` and `rgb.b` are empty.
 #[derive(Clone, Debug)]
 pub struct LightFrame {
     /// The linear colour planes; with `cfa`, `g` holds every pixel's own CFA sample (whatever

@@ -219,7 +219,9 @@ pub struct LinearMosaic {
     /// when `dn` keeps them.
     pub values: Vec<f32>,
     /// Per sample, whether the raw value was at or near the white level (see
-    /// [`Mosaic::saturation_threshold`]).
+    /// [`Mosaic::saturation_threshold`]); empty when no sample is (a frame kept as DN that
+    /// clips nowhere need not write a flag per sample). Read with
+    /// [`LinearMosaic::saturated_at`] and [`LinearMosaic::saturated_row`].
     pub saturated: Vec<bool>,
     /// The samples kept as the DN they were decoded as, linearised where read (a light frame
     /// of a full-resolution stack, see `raw::pass::keep_dn`); `values` is then empty. Read
@@ -250,19 +252,36 @@ impl LinearMosaic {
         }
     }
 
+    /// Whether sample `i` is saturated.
+    #[inline]
+    pub fn saturated_at(&self, i: usize) -> bool {
+        !self.saturated.is_empty() && self.saturated[i]
+    }
+
+    /// Row `y`'s saturation flags; `None` when no sample of the mosaic is saturated.
+    pub fn saturated_row(&self, y: usize) -> Option<&[bool]> {
+        let w = self.width;
+        (!self.saturated.is_empty()).then(|| &self.saturated[y * w..(y + 1) * w])
+    }
+
+    /// The saturation flags as a mask; `None` when no sample is saturated.
+    pub fn saturated_mask(saturated: Vec<bool>, width: usize, height: usize) -> Option<Mask> {
+        (!saturated.is_empty()).then_some(Mask {
+            width,
+            height,
+            data: saturated,
+        })
+    }
+
     /// Channel of the sample at `(x, y)`.
     #[inline]
     pub fn channel(&self, x: usize, y: usize) -> usize {
         self.pattern[y % 2][x % 2] as usize
     }
 
-    /// Subtracts a dark frame sample by sample; a sample saturated in either is saturated.
-    pub fn subtract(&mut self, dark: &LinearMosaic) -> Result<()> {
-        self.subtract_shared(&SharedDark::of(dark.clone())?)
-    }
-
-    /// [`LinearMosaic::subtract`] with a dark frame the frames of a stack share: a frame that
-    /// keeps its DN keeps the dark frame's samples too, and subtracts them where read.
+    /// Subtracts a dark frame the frames of a stack share, sample by sample (a sample saturated
+    /// in either is saturated): a frame that keeps its DN keeps the dark frame's samples too,
+    /// and subtracts them where they are read.
     pub fn subtract_shared(&mut self, dark: &SharedDark) -> Result<()> {
         dark.layout
             .check_same_layout(self.width, self.height, self.pattern)?;
@@ -274,8 +293,13 @@ impl LinearMosaic {
                 .zip(dark.values.as_slice())
                 .for_each(|(v, d)| *v -= d),
         }
-        for (s, d) in self.saturated.iter_mut().zip(&dark.layout.saturated) {
-            *s |= *d;
+        if dark.layout.saturated.contains(&true) {
+            if self.saturated.is_empty() {
+                self.saturated = vec![false; self.width * self.height];
+            }
+            for (s, d) in self.saturated.iter_mut().zip(&dark.layout.saturated) {
+                *s |= *d;
+            }
         }
         Ok(())
     }
@@ -308,7 +332,7 @@ impl LinearMosaic {
             (self.width, self.height),
             self.pattern,
             || (),
-            |x, y, _| (self.value(y * width + x), self.saturated[y * width + x]),
+            |x, y, _| (self.value(y * width + x), self.saturated_at(y * width + x)),
         );
         frame
     }

@@ -10,7 +10,7 @@
 //! per page), so the half-resolution pass never makes the full-size mosaic at all.
 //!
 //! Each pass gives the same values, bit for bit, as [`Mosaic::linearize`],
-//! [`LinearMosaic::subtract`] and [`LinearMosaic::bin2x2`] in a row (the same operations in the
+//! [`LinearMosaic::subtract_shared`] and [`LinearMosaic::bin2x2`] in a row (the same operations in the
 //! same order); the tests below hold it to that.
 
 use rayon::prelude::*;
@@ -151,7 +151,8 @@ impl Mosaic {
 }
 
 /// Linearises `mosaic` and counts its samples for the plausibility check, subtracting
-/// `pass.dark` where given: `mosaic.linearize()` then `LinearMosaic::subtract`, in one pass.
+/// `pass.dark` where given: `mosaic.linearize()` then `LinearMosaic::subtract_shared`, in one
+/// pass.
 pub fn linearize(mosaic: &Mosaic, pass: LinearPass) -> Result<(LinearMosaic, SampleCounts)> {
     mosaic.validate()?;
     check_dark(mosaic, pass.dark)?;
@@ -188,9 +189,10 @@ pub fn linearize(mosaic: &Mosaic, pass: LinearPass) -> Result<(LinearMosaic, Sam
 
 /// [`linearize`] for a light frame of a full-resolution stack: the samples stay the DN they
 /// were decoded as (moved out of `mosaic`), linearised where they are read ([`DnMosaic`], the
-/// same arithmetic, so the same bits); only the saturation flags are written, and the counts
-/// taken. A dark frame is subtracted later (`LinearMosaic::subtract_shared`), so `pass.dark`
-/// must be `None`.
+/// same arithmetic, so the same bits). Only the counts are taken here, and the saturation
+/// flags written where some sample is saturated (a frame that clips nowhere gets none, see
+/// [`LinearMosaic::saturated`]). A dark frame is subtracted later
+/// (`LinearMosaic::subtract_shared`), so `pass.dark` must be `None`.
 pub fn keep_dn(mosaic: Mosaic, pass: LinearPass) -> Result<(LinearMosaic, SampleCounts)> {
     mosaic.validate()?;
     assert!(
@@ -199,7 +201,6 @@ pub fn keep_dn(mosaic: Mosaic, pass: LinearPass) -> Result<(LinearMosaic, Sample
     );
     let sites = Sites::of(&mosaic);
     let w = mosaic.width;
-    let mut saturated = vec![false; mosaic.samples.len()];
     let dn = DnMosaic {
         width: mosaic.width,
         height: mosaic.height,
@@ -207,23 +208,35 @@ pub fn keep_dn(mosaic: Mosaic, pass: LinearPass) -> Result<(LinearMosaic, Sample
         sites: sites.scales,
         dark: None,
     };
-    let counts = saturated
-        .par_chunks_mut(w)
-        .enumerate()
-        .map_init(Vec::new, |values, (y, sat)| {
-            let mut counts = empty_counts(&pass, w);
-            let row = &dn.dn[y * w..(y + 1) * w];
-            for (s, &raw) in sat.iter_mut().zip(row) {
-                *s = raw as f32 >= sites.threshold;
-            }
-            if pass.below_black_floor.is_some() {
-                values.resize(w, 0.0);
-                dn.row_into(y, values);
-            }
-            count_row(&mut counts, values, sat, pass.below_black_floor);
-            counts
-        })
+    let saturated_row = |y: usize, flags: &mut [bool]| {
+        let row = &dn.dn[y * w..(y + 1) * w];
+        for (s, &raw) in flags.iter_mut().zip(row) {
+            *s = raw as f32 >= sites.threshold;
+        }
+    };
+    // Counted without writing anything; the flags are written only if something clipped.
+    let counts = (0..mosaic.height)
+        .into_par_iter()
+        .map_init(
+            || (Vec::new(), Vec::new()),
+            |(values, flags), y| {
+                let mut counts = empty_counts(&pass, w);
+                flags.resize(w, false);
+                saturated_row(y, flags);
+                if pass.below_black_floor.is_some() {
+                    values.resize(w, 0.0);
+                    dn.row_into(y, values);
+                }
+                count_row(&mut counts, values, flags, pass.below_black_floor);
+                counts
+            },
+        )
         .reduce(|| empty_counts(&pass, 0), SampleCounts::plus);
+    let mut saturated = Vec::new();
+    if counts.clipped > 0 {
+        saturated = vec![false; dn.dn.len()];
+        (saturated.par_chunks_mut(w).enumerate()).for_each(|(y, flags)| saturated_row(y, flags));
+    }
     let linear = LinearMosaic {
         width: mosaic.width,
         height: mosaic.height,
@@ -237,7 +250,7 @@ pub fn keep_dn(mosaic: Mosaic, pass: LinearPass) -> Result<(LinearMosaic, Sample
 
 /// Linearises `mosaic`, counts its samples for the plausibility check, subtracts
 /// `pass.dark` where given and bins the result 2x2 (R and B of each cell, the mean of its two
-/// G): `linearize`, `LinearMosaic::subtract` and `LinearMosaic::bin2x2` in one pass, with no
+/// G): `linearize`, `LinearMosaic::subtract_shared` and `LinearMosaic::bin2x2` in one pass, with no
 /// full-size linear mosaic made. Samples of an odd last row or column are counted, not binned.
 pub fn bin2x2(mosaic: &Mosaic, pass: LinearPass) -> Result<(LightFrame, SampleCounts)> {
     mosaic.validate()?;
@@ -332,7 +345,8 @@ mod tests {
                     }
                     let mut subtracted = separate.clone();
                     if let Some(d) = dark {
-                        subtracted.subtract(d).unwrap();
+                        let shared = super::super::mosaic::SharedDark::of(d.clone()).unwrap();
+                        subtracted.subtract_shared(&shared).unwrap();
                     }
                     let (linear, counts) = linearize(&light, pass).unwrap();
                     assert_eq!(counts, expected_counts, "{w}x{h} {pattern}");
@@ -381,7 +395,10 @@ mod tests {
                             linear.subtract_shared(&dark).unwrap();
                             kept.subtract_shared(&dark).unwrap();
                         }
-                        assert_eq!(kept.saturated, linear.saturated);
+                        let flags = |m: &LinearMosaic| {
+                            (0..w * h).map(|i| m.saturated_at(i)).collect::<Vec<_>>()
+                        };
+                        assert_eq!(flags(&kept), flags(&linear));
                         let mut scratch = Vec::new();
                         for y in 0..h {
                             let want = bits(&linear.values[y * w..(y + 1) * w]);
@@ -393,6 +410,28 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A frame kept as DN that clips nowhere writes no flags; a dark frame subtracted from it
+    /// brings its own.
+    #[test]
+    fn a_frame_kept_as_dn_that_clips_nowhere_has_no_flags_until_a_dark_frame_brings_some() {
+        use super::super::mosaic::SharedDark;
+        let (w, h) = (33, 31);
+        let mut light = mosaic(w, h, "RGGB", 7);
+        light.samples.iter_mut().for_each(|v| *v = (*v).min(3000));
+        let pass = LinearPass::default();
+        let (kept, counts) = keep_dn(light.clone(), pass).unwrap();
+        assert_eq!(counts.clipped, 0);
+        assert!(kept.saturated.is_empty() && kept.saturated_row(0).is_none());
+        let dark = mosaic(w, h, "RGGB", 11).linearize().unwrap();
+        let clipped: Vec<usize> = (0..w * h).filter(|&i| dark.saturated[i]).collect();
+        assert!(!clipped.is_empty(), "the test's dark frame clips");
+        let mut kept = kept;
+        kept.subtract_shared(&SharedDark::of(dark).unwrap())
+            .unwrap();
+        let flagged: Vec<usize> = (0..w * h).filter(|&i| kept.saturated_at(i)).collect();
+        assert_eq!(flagged, clipped);
     }
 
     #[test]

@@ -320,7 +320,7 @@ impl<'a> SiteFitter<'a> {
             samples.clear();
             samples.extend(
                 (0..n)
-                    .filter(|&k| !frames[k].saturated[i])
+                    .filter(|&k| !frames[k].saturated_at(i))
                     .map(|k| (cell.vector(k, t), value(k))),
             );
             let fit = fit_scaled_normal(samples.iter().map(|(s, v)| (s, *v)));
@@ -475,7 +475,6 @@ impl RowSums {
         self.saturated.resize(w, false);
         self.balanced.resize(w, 0.0);
         for (k, frame) in frames.iter().enumerate() {
-            let row = y * w..(y + 1) * w;
             let inv = pattern.map(|c| inverse[k][c]);
             let values = frame.row(y, &mut self.values);
             for (pair, values) in self.balanced.chunks_mut(2).zip(values.chunks(2)) {
@@ -483,8 +482,10 @@ impl RowSums {
                     *b = v as f64 * inv;
                 }
             }
-            for (s, &f) in self.saturated.iter_mut().zip(&frame.saturated[row]) {
-                *s |= f;
+            if let Some(flags) = frame.saturated_row(y) {
+                for (s, &f) in self.saturated.iter_mut().zip(flags) {
+                    *s |= f;
+                }
             }
             for (c, cell) in cells.iter().enumerate() {
                 let first = c * field.step;

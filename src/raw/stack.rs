@@ -10,7 +10,7 @@ use super::hue::colour_ratios;
 use super::mosaic::{bilinear, LinearMosaic, Mosaic, Resolution};
 use super::shading::{ShadingField, SiteFitter};
 use crate::error::{Error, Result};
-use crate::plane::{CfaColour, LightFrame, Mask, Plane, RgbPlanes};
+use crate::plane::{CfaColour, LightFrame, Plane, RgbPlanes};
 
 /// Develops a stack of frames of one static scene, each lit by an illuminant of colour
 /// `illuminants[k]` (the raw R, G, B response to it; `None`: all the same colour).
@@ -132,11 +132,7 @@ fn develop_full(
         .into_iter()
         .zip(colours)
         .map(|(frame, colour)| {
-            let saturated = Some(Mask {
-                width: w,
-                height: h,
-                data: frame.saturated,
-            });
+            let saturated = LinearMosaic::saturated_mask(frame.saturated, w, h);
             let cfa = CfaColour {
                 pattern,
                 ratios: Arc::clone(&ratios),
@@ -284,8 +280,10 @@ mod tests {
                 })
                 .collect(),
         };
-        // Lights reading up to the white level (some samples clip), and a dark frame.
-        let raw: Vec<Mosaic> = (0..lights).map(|_| mosaic(590, 15200)).collect();
+        // Lights reading up to the white level (some samples clip) and lights that clip nowhere,
+        // and a dark frame.
+        let clipping: Vec<Mosaic> = (0..lights).map(|_| mosaic(590, 15200)).collect();
+        let unclipped: Vec<Mosaic> = (0..lights).map(|_| mosaic(590, 12000)).collect();
         let dark = SharedDark::of(mosaic(596, 9).linearize().unwrap()).unwrap();
         let field = ShadingField::sample(w, h, 8, |x, y| {
             Ok((0..lights)
@@ -303,7 +301,7 @@ mod tests {
         let illuminants: Vec<[f64; 3]> = (0..lights)
             .map(|k| [0.6 + 0.02 * k as f64, 1.0, 0.7 - 0.01 * k as f64])
             .collect();
-        let develop = |keep: bool| {
+        let develop = |raw: &[Mosaic], keep: bool| {
             let frames: Vec<LinearMosaic> = (raw.iter())
                 .map(|m| {
                     let pass = LinearPass::default();
@@ -317,16 +315,23 @@ mod tests {
                 .collect();
             develop_stack(frames, Some(&illuminants), Some(&field), Resolution::Full).unwrap()
         };
-        let (kept, linear) = (develop(true), develop(false));
-        assert!(kept.iter().all(|f| f.cfa_dn.is_some()));
-        assert!(linear.iter().all(|f| f.cfa_dn.is_none()));
-        for (k, (a, b)) in kept.iter().zip(&linear).enumerate() {
-            assert_eq!(a.saturated, b.saturated, "frame {k}");
-            assert!(a.saturated.as_ref().unwrap().data.contains(&true));
-            for y in 0..h {
-                for x in 0..w {
-                    let bits = |f: &LightFrame| f.rgb_at(x, y).map(f32::to_bits);
-                    assert_eq!(bits(a), bits(b), "frame {k} ({x},{y})");
+        for (raw, clips) in [(&clipping, true), (&unclipped, false)] {
+            let (kept, linear) = (develop(raw, true), develop(raw, false));
+            assert!(kept.iter().all(|f| f.cfa_dn.is_some()));
+            assert!(linear.iter().all(|f| f.cfa_dn.is_none()));
+            for (k, (a, b)) in kept.iter().zip(&linear).enumerate() {
+                // A frame kept as DN that clips nowhere has no flags at all.
+                let flags = b.saturated.as_ref().unwrap();
+                assert_eq!(flags.data.contains(&true), clips, "frame {k}");
+                match clips {
+                    true => assert_eq!(a.saturated.as_ref(), Some(flags), "frame {k}"),
+                    false => assert_eq!(a.saturated, None, "frame {k}"),
+                }
+                for y in 0..h {
+                    for x in 0..w {
+                        let bits = |f: &LightFrame| f.rgb_at(x, y).map(f32::to_bits);
+                        assert_eq!(bits(a), bits(b), "frame {k} ({x},{y})");
+                    }
                 }
             }
         }
