@@ -293,7 +293,7 @@ impl LinearMosaic {
                 .zip(dark.values.as_slice())
                 .for_each(|(v, d)| *v -= d),
         }
-        if dark.layout.saturated.contains(&true) {
+        if dark.clips {
             if self.saturated.is_empty() {
                 self.saturated = vec![false; self.width * self.height];
             }
@@ -344,6 +344,8 @@ pub struct SharedDark {
     /// The frame's size, pattern and saturation flags (its `values` moved to `values`).
     layout: LinearMosaic,
     values: Arc<Vec<f32>>,
+    /// Whether any of its samples is saturated (looked up once, not once per light frame).
+    clips: bool,
 }
 
 impl SharedDark {
@@ -355,9 +357,11 @@ impl SharedDark {
             ));
         }
         let values = Arc::new(std::mem::take(&mut dark.values));
+        let clips = dark.saturated.par_iter().any(|&s| s);
         Ok(SharedDark {
             layout: dark,
             values,
+            clips,
         })
     }
 }
