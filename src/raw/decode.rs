@@ -212,7 +212,7 @@ fn first_nonempty(a: &str, b: &str) -> String {
 }
 
 /// The active area's CFA samples, levels and pattern.
-fn to_mosaic(image: RawImage, mut meta: RawMeta) -> std::result::Result<DecodedRaw, String> {
+fn to_mosaic(mut image: RawImage, mut meta: RawMeta) -> std::result::Result<DecodedRaw, String> {
     if image.cpp != 1 {
         return Err(format!(
             "holds {} values per pixel (an already demosaiced or linear DNG); psscan needs the \
@@ -228,7 +228,9 @@ fn to_mosaic(image: RawImage, mut meta: RawMeta) -> std::result::Result<DecodedR
             ))
         }
     };
-    let data = match &image.data {
+    // Taken out of the image: the active area is cropped out of it in place (a second
+    // frame-sized buffer per frame would be fresh memory, see `crate::alloc`).
+    let data = match std::mem::replace(&mut image.data, RawImageData::Integer(Vec::new())) {
         RawImageData::Integer(data) => data,
         RawImageData::Float(_) => {
             return Err(
@@ -277,10 +279,7 @@ fn to_mosaic(image: RawImage, mut meta: RawMeta) -> std::result::Result<DecodedR
         Some(&w) if w > 0 => w as f32,
         _ => return Err("has no white level".into()),
     };
-    let mut samples = Vec::with_capacity(width * height);
-    for y in y0..y0 + height {
-        samples.extend_from_slice(&data[y * full_w + x0..y * full_w + x0 + width]);
-    }
+    let samples = crop_in_place(data, full_w, (x0, y0, width, height));
     meta.width = width;
     meta.height = height;
     let mosaic = Mosaic {
@@ -307,6 +306,25 @@ fn to_mosaic(image: RawImage, mut meta: RawMeta) -> std::result::Result<DecodedR
         meta,
         camera_to_srgb,
     })
+}
+
+/// The `width x height` window at (`x0`, `y0`) of the row-major image `data` (rows of
+/// `full_w`), moved to the front of the same buffer row by row and the rest cut off. Each
+/// row moves toward the start, never past a row not yet moved, so no sample is overwritten
+/// before it is read.
+fn crop_in_place(
+    mut data: Vec<u16>,
+    full_w: usize,
+    (x0, y0, width, height): (usize, usize, usize, usize),
+) -> Vec<u16> {
+    if (x0, y0, width) != (0, 0, full_w) {
+        for y in 0..height {
+            let from = (y0 + y) * full_w + x0;
+            data.copy_within(from..from + width, y * width);
+        }
+    }
+    data.truncate(width * height);
+    data
 }
 
 /// The black level of each of the four CFA sites of the active area. rawler's black-level
@@ -352,6 +370,32 @@ fn site_black_levels(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The active area cropped in place is what copying its rows out gives, for windows at
+    /// the origin, offset in x, in y, in both, one row, and the whole image.
+    #[test]
+    fn cropping_in_place_gives_the_windows_rows() {
+        let (full_w, full_h) = (13, 9);
+        let image: Vec<u16> = (0..(full_w * full_h) as u16).collect();
+        for window in [
+            (0, 0, 13, 9),
+            (0, 0, 5, 4),
+            (3, 0, 10, 9),
+            (0, 2, 13, 7),
+            (2, 3, 7, 5),
+            (4, 8, 9, 1),
+        ] {
+            let (x0, y0, w, h) = window;
+            let want: Vec<u16> = (y0..y0 + h)
+                .flat_map(|y| image[y * full_w + x0..y * full_w + x0 + w].to_vec())
+                .collect();
+            assert_eq!(
+                crop_in_place(image.clone(), full_w, window),
+                want,
+                "{window:?}"
+            );
+        }
+    }
     use crate::raw::mosaic::Resolution;
 
     /// A RAW file shipped with the tests (tests/data/raw, sources and licences in its README).

@@ -131,7 +131,8 @@ pub fn decode_frame(
 
 /// The stages [`decode_codec`] and [`finish_decode`] record: the RAW codec (rawler), the
 /// linearisation to `f32` (black and white level), the pass that also subtracts the dark
-/// frame and bins (`RawPrep::bin`), and a dn16 frame's decode, linearised as it is inflated.
+/// frame and bins (`RawPrep::bin`), a dn16 frame's decode, linearised as it is inflated, and
+/// the pass over a RAW light frame kept as DN (`RawPrep::keep_dn`).
 pub const DECODE_STAGES: [&str; 5] = [
     "decode",
     "linearize",
