@@ -282,9 +282,10 @@ impl RgbPlanes {
 /// A full-resolution RAW frame stores one sample per pixel and takes its missing channels
 /// from colour ratios that every frame of its stack shares ([`CfaColour`]): ten 16 MP frames
 /// then take 0.8 GB rather than 1.9 GB with `f32` samples, and 0.5 GB with the samples kept
-/// as the DN they were decoded as (`cfa_dn`, as a set's loader keeps them). Read such a frame's values with
-/// [`Self::rgb_at`] or [`Self::to_planes`] (or its own sample with [`Self::cfa_sample`], and
-/// the others from it with [`CfaColour::rgb`]); its `rgb.r` and `rgb.b` are empty.
+/// as the DN they were decoded as (`cfa_dn`, as a set's loader keeps them). Read such a
+/// frame's values with [`Self::rgb_at`] or [`Self::to_planes`] (or its own sample with
+/// [`Self::cfa_sample`], and the others from it with [`CfaColour::rgb`]); its `rgb.r` and
+/// `rgb.b` are empty.
 #[derive(Clone, Debug)]
 pub struct LightFrame {
     /// The linear colour planes; with `cfa`, `g` holds every pixel's own CFA sample (whatever
@@ -375,19 +376,20 @@ impl LightFrame {
 
     /// Width in pixels.
     pub fn width(&self) -> usize {
-        match (&self.dn, &self.cfa_dn) {
-            (Some(d), _) => d.width,
-            (None, Some(d)) => d.width,
-            (None, None) => self.rgb.g.width,
-        }
+        self.size().0
     }
 
     /// Height in pixels.
     pub fn height(&self) -> usize {
+        self.size().1
+    }
+
+    /// Width and height, from whichever store holds the frame's samples.
+    fn size(&self) -> (usize, usize) {
         match (&self.dn, &self.cfa_dn) {
-            (Some(d), _) => d.height,
-            (None, Some(d)) => d.height,
-            (None, None) => self.rgb.g.height,
+            (Some(d), _) => (d.width, d.height),
+            (None, Some(d)) => (d.width, d.height),
+            (None, None) => (self.rgb.g.width, self.rgb.g.height),
         }
     }
 

@@ -81,8 +81,8 @@ impl AtomicFile {
         }
     }
 
-    /// Where the encoder writes (buffered; seekable for formats that go back to fill in an
-    /// offset table).
+    /// Where the encoder writes (through a buffer or past the page cache, as created; seekable
+    /// for formats that go back to fill in an offset table).
     pub fn writer(&mut self) -> &mut FileWriter {
         self.file.as_mut().expect("a file not yet committed")
     }

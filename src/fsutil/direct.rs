@@ -3,9 +3,10 @@
 //!
 //! Why: a buffered write copies every byte into page-cache pages the kernel must first take
 //! and clear, and a 16 MP solve writes 850 MB of maps. On the development VM the kernel's copy
-//! (`copy_folio_from_iter_atomic`) was the largest single item in a `perf` profile of a 16 MP
-//! solve, 14 % of its samples; `dd` of 800 MB with `conv=fsync` took 0.85-1.9 s of system time
-//! buffered against 0.10-0.19 s with `oflag=direct`.
+//! (`copy_folio_from_iter_atomic`) was the largest single item in one `perf` profile of a
+//! 16 MP solve, 14 % of its samples (0.55 % in another: it depends on the memory's state);
+//! `dd` of 800 MB with `conv=fsync` took 0.24-1.93 s of system time buffered against
+//! 0.10-0.19 s with `oflag=direct` (5 runs each).
 //!
 //! How: the encoder's bytes are gathered into aligned blocks, and each full block is written
 //! by a thread of the file's own while the encoder fills the next (a few blocks are reused, so

@@ -1,8 +1,8 @@
 //! A dn16 frame kept as the 16-bit digital numbers it was stored as, linearised where it is
 //! read: half the memory of `f32` planes (and a RAW frame's CFA samples kept the same way,
-//! [`DnMosaic`]). At 16 MP an 11-frame dn16 set held 2.1 GB of `f32`
-//! planes, and on a virtual machine most of decoding it was the kernel zeroing those fresh
-//! pages (perf: a quarter of the whole solve's CPU samples in `clear_page_erms`).
+//! [`DnMosaic`]). At 16 MP an 11-frame dn16 set held 2.1 GB of `f32` planes, and on a virtual
+//! machine most of decoding it was the kernel zeroing those fresh pages (perf: a quarter of
+//! the whole solve's CPU samples in `clear_page_erms`).
 
 use std::sync::Arc;
 

@@ -10,8 +10,8 @@
 //! per page), so the half-resolution pass never makes the full-size mosaic at all.
 //!
 //! Each pass gives the same values, bit for bit, as [`Mosaic::linearize`],
-//! [`LinearMosaic::subtract_shared`] and [`LinearMosaic::bin2x2`] in a row (the same operations in the
-//! same order); the tests below hold it to that.
+//! [`LinearMosaic::subtract_shared`] and [`LinearMosaic::bin2x2`] in a row (the same
+//! operations in the same order); the tests below hold it to that.
 
 use rayon::prelude::*;
 

@@ -257,7 +257,6 @@ pub fn load_rgb<T: Real>(frame: &LightFrame, i0: usize, (x, y): (usize, usize)) 
             .try_into()
             .expect("a whole chunk"),
     };
-    let own = &own;
     let mut out = [[T::zero(); LANES]; 3];
     for (l, &v) in own.iter().enumerate() {
         let rgb = cfa.rgb(v, i0 + l, cfa.own(x + l, y));
