@@ -27,8 +27,8 @@ use rayon::prelude::*;
 
 use super::kernel::{Kernel, RowOut, Scratch};
 use super::lanes::{
-    adjugate, apply, dot, frob_sq, load_rgb, madd, mix, prefetch, store, subtract_if, vectors,
-    vectors6, Real, LANES, PREFETCH_AHEAD, V,
+    adjugate, apply, dot, frob_sq, load_rgb, madd, mix, own_channels, prefetch, store, subtract_if,
+    vectors, vectors6, Real, LANES, PREFETCH_AHEAD, V,
 };
 use super::lights::Illumination;
 use super::noise_sums::{LightLanes, NoiseSums, Weighing};
@@ -403,10 +403,10 @@ fn solve_chunk<T: Real, const FMA: bool>(
     let mut noise = ctx.weighing.map(|w| NoiseSums::<T>::new(w, (x, y)));
     // `DarkTest::is_dark` in lanes: the lanes' own CFA channel and its threshold, where the
     // channels share a sample.
-    let dark_sample = ctx.dark.sample.map(|(pattern, threshold)| {
-        let own: [usize; LANES] = std::array::from_fn(|l| pattern[y % 2][(x + l) % 2] as usize);
-        (own, T::of(threshold))
-    });
+    let dark_sample = ctx
+        .dark
+        .sample
+        .map(|(pattern, threshold)| (own_channels(pattern, (x, y)), T::of(threshold)));
     for (k, frame) in ctx.frames.lights.iter().enumerate() {
         let [r, g, bl] = load_rgb::<T>(frame, i0, (x, y));
         const NONE_SATURATED: [bool; LANES] = [false; LANES];
@@ -427,11 +427,21 @@ fn solve_chunk<T: Real, const FMA: bool>(
         let mut one = [zero; LANES];
         for l in 0..LANES {
             let lum = madd::<T, FMA>(wt[0], r[l], madd::<T, FMA>(wt[1], g[l], wt[2] * bl[l]));
-            let rgb = [r[l], g[l], bl[l]];
             let bright = match &dark_sample {
-                Some((own, sample_threshold)) => rgb[own[l]] > *sample_threshold,
+                Some(([is_r, is_g, _], sample_threshold)) => {
+                    // Selects, not an index per lane: they vectorise.
+                    let own = if is_r[l] {
+                        r[l]
+                    } else if is_g[l] {
+                        g[l]
+                    } else {
+                        bl[l]
+                    };
+                    own > *sample_threshold
+                }
                 None => lum > threshold,
             };
+            let rgb = [r[l], g[l], bl[l]];
             let keep = !sat[l] && bright && lum <= max;
             let m = if keep { inv_falloff[l] } else { zero };
             for c in 0..3 {

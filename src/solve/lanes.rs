@@ -2,7 +2,7 @@
 //! computes in, a vector of lanes whose operations LLVM turns into vector instructions, the
 //! small symmetric-matrix helpers, and the prefetch of the input planes. No solve logic.
 
-use crate::plane::{prefetch_at, Dark, DnMosaic, DnSamples, Frames, LightFrame, Plane};
+use crate::plane::{prefetch_at, CfaColour, Dark, DnMosaic, DnSamples, Frames, LightFrame, Plane};
 
 /// Pixels processed together (one vector register of f32 on AVX-512, two on AVX2).
 pub const LANES: usize = 16;
@@ -222,11 +222,11 @@ fn load_dn<T: Real>(dn: &DnSamples, c: usize, i0: usize) -> [T; LANES] {
 #[inline(always)]
 fn load_cfa_dn(dn: &DnMosaic, i0: usize, (x, y): (usize, usize)) -> [f32; LANES] {
     let src: &[u16; LANES] = dn.dn[i0..i0 + LANES].try_into().expect("a whole chunk");
-    let sites = dn.sites[y & 1];
+    let sites = by_column_parity(x, dn.sites[y & 1]);
+    let (black, scale) = (sites.map(|s| s.0), sites.map(|s| s.1));
     let mut values = [0.0f32; LANES];
     for (l, (v, &s)) in values.iter_mut().zip(src).enumerate() {
-        let (black, scale) = sites[(x + l) & 1];
-        *v = (s as f32 - black) * scale;
+        *v = (s as f32 - black[l]) * scale[l];
     }
     if let Some(dark) = &dn.dark {
         let dark: &[f32; LANES] = dark[i0..i0 + LANES].try_into().expect("a whole chunk");
@@ -235,6 +235,23 @@ fn load_cfa_dn(dn: &DnMosaic, i0: usize, (x, y): (usize, usize)) -> [f32; LANES]
         }
     }
     values
+}
+
+/// Per lane of a chunk starting at column `x`, the entry of `by_parity` (indexed by column
+/// parity) for the lane's column, as whole-chunk arrays: the lanes alternate between two
+/// values, which the compiler turns into vector constants and blends where a per-lane index
+/// would be a scalar load per lane.
+#[inline(always)]
+fn by_column_parity<P: Copy>(x: usize, by_parity: [P; 2]) -> [P; LANES] {
+    let (even, odd) = (by_parity[x & 1], by_parity[(x + 1) & 1]);
+    std::array::from_fn(|l| if l & 1 == 0 { even } else { odd })
+}
+
+/// Per lane of the chunk at (`x`, `y`), which of R, G, B is the lane's own CFA channel.
+#[inline(always)]
+pub fn own_channels(pattern: [[u8; 2]; 2], (x, y): (usize, usize)) -> [[bool; LANES]; 3] {
+    let own = by_column_parity(x, pattern[y & 1]);
+    std::array::from_fn(|c| own.map(|o| o as usize == c))
 }
 
 /// The R, G, B values of the `LANES` pixels of `frame` from index `i0` (columns `x`.. of row
@@ -257,14 +274,34 @@ pub fn load_rgb<T: Real>(frame: &LightFrame, i0: usize, (x, y): (usize, usize)) 
             .try_into()
             .expect("a whole chunk"),
     };
-    let mut out = [[T::zero(); LANES]; 3];
-    for (l, &v) in own.iter().enumerate() {
-        let rgb = cfa.rgb(v, i0 + l, cfa.own(x + l, y));
-        for c in 0..3 {
-            out[c][l] = T::of32(rgb[c]);
-        }
-    }
-    out
+    cfa_rgb(cfa, &own, i0, (x, y))
+}
+
+/// [`CfaColour::rgb`] of the `LANES` pixels from index `i0` (columns `x`.. of row `y`) whose
+/// own samples are `own`, in lanes: the same arithmetic in the same order (so the same bits),
+/// with the lanes' own channels and illuminant colours as alternating lane constants.
+#[inline(always)]
+fn cfa_rgb<T: Real>(
+    cfa: &CfaColour,
+    own: &[f32; LANES],
+    i0: usize,
+    (x, y): (usize, usize),
+) -> [[T; LANES]; 3] {
+    let is_own = own_channels(cfa.pattern, (x, y));
+    let pattern_row = cfa.pattern[y & 1].map(|c| cfa.colour[c as usize]);
+    let own_colour = by_column_parity(x, pattern_row);
+    let ratios = cfa.ratios.channels();
+    std::array::from_fn(|c| {
+        let ratio: &[f32; LANES] = ratios[c].data[i0..i0 + LANES]
+            .try_into()
+            .expect("a whole chunk");
+        let colour = cfa.colour[c];
+        std::array::from_fn(|l| {
+            let v = own[l];
+            let scaled = v * ratio[l] * colour / own_colour[l];
+            T::of32(if is_own[c][l] { v } else { scaled })
+        })
+    })
 }
 
 /// Writes `v` to `out` (`LANES` values) in `f32`.
@@ -351,4 +388,73 @@ pub fn vectors<T: Real>(v: &[[T; LANES]; 3]) -> [V<T>; 3] {
 #[inline(always)]
 pub fn dot<T: Real>(a: &[V<T>; 3], b: &[V<T>; 3]) -> V<T> {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use super::*;
+    use crate::plane::{Mask, Plane, RgbPlanes};
+
+    /// A frame of CFA samples kept as DN (with a dark frame), with ratios and DN that differ
+    /// from pixel to pixel, so a lane that read another lane's site, channel or colour would
+    /// show.
+    fn cfa_dn_frame(width: usize, height: usize, pattern: [[u8; 2]; 2]) -> LightFrame {
+        let n = width * height;
+        let wave = |i: usize, k: usize| ((i * 7 + k * 13) % 97) as f32 / 97.0;
+        let plane = |k: usize| Plane {
+            width,
+            height,
+            data: (0..n).map(|i| 0.3 + 2.0 * wave(i, k)).collect(),
+        };
+        let ratios = RgbPlanes {
+            r: plane(1),
+            g: plane(2),
+            b: plane(3),
+        };
+        let samples = DnMosaic {
+            width,
+            height,
+            dn: (0..n).map(|i| 600 + (i * 4099 % 60_000) as u16).collect(),
+            sites: [
+                [(512.0, 1.0 / 15_000.0), (520.0, 1.0 / 15_500.0)],
+                [(508.0, 1.0 / 16_000.0), (515.0, 1.0 / 15_800.0)],
+            ],
+            dark: Some(Arc::new((0..n).map(|i| 1e-3 * wave(i, 4)).collect())),
+        };
+        let cfa = CfaColour {
+            pattern,
+            ratios: Arc::new(ratios),
+            colour: [0.61, 1.0, 0.83],
+        };
+        LightFrame::from_cfa_dn(samples, None::<Mask>, cfa)
+    }
+
+    #[test]
+    fn a_cfa_chunk_loads_what_each_pixel_reads_bit_for_bit() {
+        let (width, height) = (LANES + 7, 4);
+        for pattern in [[[0, 1], [1, 2]], [[1, 0], [2, 1]], [[2, 1], [1, 0]]] {
+            let frame = cfa_dn_frame(width, height, pattern);
+            let cfa = frame.cfa.as_ref().expect("a CFA frame");
+            // Every chunk start parity on both row parities.
+            for (x, y) in [(0, 0), (1, 0), (6, 1), (7, 3)] {
+                let i0 = y * width + x;
+                let lanes: [[f32; LANES]; 3] = load_rgb(&frame, i0, (x, y));
+                let own = own_channels(pattern, (x, y));
+                for l in 0..LANES {
+                    let sample = frame.cfa_sample(i0 + l, x + l, y);
+                    let expected = cfa.rgb(sample, i0 + l, cfa.own(x + l, y));
+                    for c in 0..3 {
+                        assert_eq!(
+                            lanes[c][l].to_bits(),
+                            expected[c].to_bits(),
+                            "pattern {pattern:?}, chunk ({x}, {y}), lane {l}, channel {c}"
+                        );
+                        assert_eq!(own[c][l], cfa.own(x + l, y) == c);
+                    }
+                }
+            }
+        }
+    }
 }
