@@ -239,8 +239,8 @@ fn load_cfa_dn(dn: &DnMosaic, i0: usize, (x, y): (usize, usize)) -> [f32; LANES]
 
 /// Per lane of a chunk starting at column `x`, the entry of `by_parity` (indexed by column
 /// parity) for the lane's column, as whole-chunk arrays: the lanes alternate between two
-/// values, which the compiler turns into vector constants and blends where a per-lane index
-/// would be a scalar load per lane.
+/// values, which the compiler can hold in vectors and blend with, where a per-lane index
+/// compiled to a scalar load per lane (the kernel's profile before this was in lanes).
 #[inline(always)]
 fn by_column_parity<P: Copy>(x: usize, by_parity: [P; 2]) -> [P; LANES] {
     let (even, odd) = (by_parity[x & 1], by_parity[(x + 1) & 1]);
