@@ -399,33 +399,28 @@ impl CaptureSet {
             progress.advance(1);
             Ok((path, coded))
         };
-        // Every frame's codec first, one frame per core (the dark frame with the lights);
-        // then the dark frame's linear pass, and the light frames' with it in hand, so each
-        // counts its samples against the dark frame's read noise and, at half resolution,
-        // subtracts it and bins in the same pass: no full-size linear mosaic of a light frame
-        // is made there (`raw::pass`). Each frame's stored samples are freed after its pass.
+        // The dark frame first, codec and linear pass (rawler decodes its tiles on every
+        // core); then each light frame's codec and its linear pass in one job, one frame per
+        // core, with the dark frame in hand, so each counts its samples against the dark
+        // frame's read noise and, at half resolution, subtracts it and bins in the same pass:
+        // no full-size linear mosaic of a light frame is made there (`raw::pass`). A frame's
+        // stored samples are freed right after its pass, so at half resolution the next
+        // frame's decode reuses their memory: with every codec first, all eleven 16 MP mosaics
+        // (350 MB) were alive at once, fresh memory each.
         let bin = encoding == Encoding::Raw && options.resolution == Resolution::Half;
         let decoded = clock.time_shared(&stages, "load frames", |busy| {
-            let mut coded = jobs
-                .par_iter()
-                .map(|entry| code_one(entry, busy))
-                .collect::<Result<Vec<(PathBuf, Coded)>>>()?
-                .into_iter();
             let finish = |(path, coded): (PathBuf, Coded), prep: RawPrep| {
                 finish_decode(coded, &path, prep, busy)
             };
-            let dark_frame = match dark {
-                Some(_) => Some(finish(
-                    coded.next().expect("the dark frame"),
-                    RawPrep::default(),
-                )?),
-                None => None,
-            };
+            let (dark_job, light_jobs) = jobs.split_at(dark.is_some() as usize);
+            let dark_frame = dark_job
+                .first()
+                .map(|entry| finish(code_one(entry, busy)?, RawPrep::default()))
+                .transpose()?;
             let prep = RawPrep::for_lights(dark_frame.as_ref(), subtracted.is_some(), bin);
-            let lights = coded
-                .collect::<Vec<_>>()
-                .into_par_iter()
-                .map(|c| finish(c, prep))
+            let lights = light_jobs
+                .par_iter()
+                .map(|entry| finish(code_one(entry, busy)?, prep))
                 .collect::<Result<Vec<DecodedFrame>>>()?;
             Ok::<_, Error>(dark_frame.into_iter().chain(lights).collect::<Vec<_>>())
         })?;
