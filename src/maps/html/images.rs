@@ -224,6 +224,20 @@ impl<'a> FullMaps<'a> {
         }
     }
 
+    /// Maps of only a confidence map (`status`, `fit`, `predicted_error_deg`, `residual`), for
+    /// the tests of what the page computes from it.
+    #[cfg(test)]
+    pub(super) fn of_confidence(planes: [Plane; 4]) -> FullMaps<'static> {
+        FullMaps {
+            width: planes[0].width,
+            height: planes[0].height,
+            albedo: None,
+            normal: None,
+            confidence: Some(planes.map(Cow::Owned)),
+            missing: Vec::new(),
+        }
+    }
+
     fn drop_other_sizes(&mut self) {
         let size = (self.width, self.height);
         let same = |p: &Plane| (p.width, p.height) == size;
@@ -397,7 +411,7 @@ pub fn class_image(
                 *block = (x * f * f, 0);
             }
             r.sum_row((w, h), y, blocks, |(start, len), i| {
-                classes[*start + *len] = class_at(i) as u8;
+                classes[*start + *len] = u8::try_from(class_at(i)).expect("a class below 256");
                 *len += 1;
             });
             for (px, &(start, len)) in row.chunks_exact_mut(3).zip(blocks.iter()) {
@@ -661,19 +675,7 @@ mod tests {
             (0..w * h).map(|i| (i % 5 == 0) as u8 as f32).collect(),
         )
         .unwrap();
-        let maps = FullMaps {
-            width: w,
-            height: h,
-            albedo: None,
-            normal: None,
-            confidence: Some([
-                Cow::Owned(status.clone()),
-                Cow::Owned(status.clone()),
-                Cow::Owned(plane.clone()),
-                Cow::Owned(plane.clone()),
-            ]),
-            missing: Vec::new(),
-        };
+        let maps = FullMaps::of_confidence([status.clone(), status, plane.clone(), plane.clone()]);
         let max = 50.0;
         let scalar = scalar_image(&plane, &maps, &r, max);
         let classes = class_image((w, h), |i| (plane.data[i] as usize) % 4, &r, |c| [c, 0, 0]);

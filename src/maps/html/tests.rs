@@ -93,25 +93,13 @@ fn maps_from_memory_equal_the_maps_read_back_from_the_files() {
 #[test]
 fn class_counts_count_each_class_below_n_of_the_pixels_asked_for() {
     use crate::plane::Plane;
-    use std::borrow::Cow;
     let (w, h) = (1000, 150);
     let odd = [f32::NAN, -1.0, 5.5, 300.0, 2.0, 0.0, 1.0, 7.0];
     let status = Plane::from_vec(w, h, (0..w * h).map(|i| ((i / 7) % 3) as f32).collect());
     let fit = Plane::from_vec(w, h, (0..w * h).map(|i| odd[i % odd.len()]).collect());
     let (status, fit) = (status.unwrap(), fit.unwrap());
-    let maps = images::FullMaps {
-        width: w,
-        height: h,
-        albedo: None,
-        normal: None,
-        confidence: Some([
-            Cow::Owned(status.clone()),
-            Cow::Owned(fit.clone()),
-            Cow::Owned(fit.clone()),
-            Cow::Owned(fit.clone()),
-        ]),
-        missing: Vec::new(),
-    };
+    let maps =
+        images::FullMaps::of_confidence([status.clone(), fit.clone(), fit.clone(), fit.clone()]);
     for (plane, solved_only, n) in [(&status, false, 6), (&fit, true, 3), (&fit, false, 6)] {
         let mut expected = vec![0usize; n];
         for (i, &v) in plane.data.iter().enumerate() {
