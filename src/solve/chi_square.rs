@@ -11,16 +11,25 @@ use super::PixelFit;
 pub(super) struct ChiSquare {
     sigma: f64,
     relative_model_error: f64,
+    /// [`ChiSquare::threshold`] of each degree of freedom below [`TABULATED_DOF`], computed
+    /// once: the robust fit tests after every light it drops.
+    thresholds: [f64; TABULATED_DOF],
 }
+
+/// Degrees of freedom whose threshold is tabulated (rigs of up to 258 lights).
+const TABULATED_DOF: usize = 256;
 
 impl ChiSquare {
     /// The test at `significance_sigma`, with `relative_model_error` of the reading added in
     /// quadrature to the sensor noise (see `RobustOptions`).
     pub fn new(significance_sigma: f64, relative_model_error: f64) -> Self {
-        ChiSquare {
+        let mut chi = ChiSquare {
             sigma: significance_sigma,
             relative_model_error,
-        }
+            thresholds: [0.0; TABULATED_DOF],
+        };
+        chi.thresholds = std::array::from_fn(|dof| chi.threshold(dof));
+        chi
     }
 
     /// Sets each measurement's test variance: sensor noise, model error, and the f32
@@ -79,7 +88,11 @@ impl ChiSquare {
     /// True when `statistic` of a fit to `lights` lights is within the noise.
     pub fn accepts_statistic(&self, statistic: f64, lights: usize) -> bool {
         let dof = lights.saturating_sub(3);
-        dof == 0 || statistic <= self.threshold(dof)
+        let threshold = match self.thresholds.get(dof) {
+            Some(&tabulated) => tabulated,
+            None => self.threshold(dof),
+        };
+        dof == 0 || statistic <= threshold
     }
 }
 

@@ -66,6 +66,32 @@ pub(super) fn fit_normal_equations(measurements: &[Measurement]) -> Option<Fit> 
     })
 }
 
+/// The unweighted least squares of the luminance alone: [`fit_normal_equations`]' `n_lum`,
+/// `a_inv` and `condition` to the bit (the same sums in the same order, the same inverse;
+/// `None` where it gives `None`), without its colour solves.
+pub(super) struct LuminanceFit {
+    pub n_lum: Vector3<f64>,
+    pub a_inv: Matrix3<f64>,
+    /// As [`condition_of`] gives it for the same lights.
+    pub condition: f64,
+}
+
+pub(super) fn fit_luminance(measurements: &[Measurement]) -> Option<LuminanceFit> {
+    let mut a = Gram::default();
+    let mut b_lum = Vector3::zeros();
+    for m in measurements {
+        a.add(&m.l, 1.0);
+        b_lum += m.l * m.lum;
+    }
+    let a = a.matrix();
+    let a_inv = a.try_inverse()?;
+    Some(LuminanceFit {
+        n_lum: a_inv * b_lum,
+        a_inv,
+        condition: (a.norm() * a_inv.norm()).sqrt(),
+    })
+}
+
 /// Least squares through the singular value decomposition of `L` (the seed's method).
 pub(super) fn fit_svd(measurements: &[Measurement]) -> Option<Fit> {
     let m = measurements.len();

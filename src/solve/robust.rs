@@ -22,7 +22,7 @@ use nalgebra::Vector3;
 
 use super::chi_square::{weighted_fit, ChiSquare, WeightedFit};
 use super::departures;
-use super::measure::{condition_of, fit_normal_equations, Fit, Measurement};
+use super::measure::{condition_of, fit_luminance, Fit, LuminanceFit, Measurement};
 use super::options::RobustOptions;
 use super::sheen::{self, SheenModel};
 
@@ -404,8 +404,16 @@ fn reject_outliers(
     let spare = &mut buffers.darker;
     spare.clear();
     spare.extend_from_slice(measurements);
-    let any = reject(context, measurements, start.clone(), Rule::Any);
-    let darker = reject(context, spare, start, Rule::DarkerOnly);
+    let any = reject(context, measurements, start.clone(), Rule::Any, 0);
+    // Where the first pass passes, the darker-only pass can only win with at least as many
+    // lights (the ranking below): it stops there rather than drop more, which changes no
+    // result.
+    let floor = if chi.accepts_statistic(any.chi2, measurements.len()) {
+        measurements.len()
+    } else {
+        0
+    };
+    let darker = reject(context, spare, start, Rule::DarkerOnly, floor);
     // A pass whose lights pass the test beats one whose do not; between two that pass, more
     // lights, then (shadows only darken) the higher albedo; between two that fail, the smaller
     // statistic per degree of freedom.
@@ -438,12 +446,13 @@ fn reject_outliers(
 }
 
 /// Backward elimination from `fit` under `rule` until the lights pass the chi-square test, no
-/// light is an outlier, or only the options' minimum is left.
+/// light is an outlier, or only the options' minimum (or `floor`, when more) is left.
 fn reject(
     context: &Context,
     measurements: &mut Vec<Measurement>,
     fit: WeightedFit,
     rule: Rule,
+    floor: usize,
 ) -> WeightedFit {
     let options = context.options;
     let chi = context.chi;
@@ -457,20 +466,34 @@ fn reject(
     // Four lights at least: three fit any normal exactly, so a rejection that left three
     // could not be checked, and with four every single removal fits exactly and which light
     // was the outlier is undecidable.
-    let keep = keep.max(4);
+    let keep = keep.max(4).max(floor);
     let mut fit = fit;
+    // The darker-only pass's unweighted fit of the current lights: the condition check of a
+    // removal computes it (the same sums as `condition_of`), and the next removal picks the
+    // darkest light against it.
+    let mut unweighted = None;
     while measurements.len() > keep && !chi.accepts_statistic(fit.chi2, measurements.len()) {
         let sigma = options.outlier_sigma;
         let worst = match rule {
             Rule::Any => worst_outlier(chi, measurements, &fit, sigma),
-            Rule::DarkerOnly => darkest_outlier(chi, measurements, sigma),
+            Rule::DarkerOnly => unweighted
+                .take()
+                .or_else(|| fit_luminance(measurements))
+                .and_then(|unweighted| darkest_outlier(chi, measurements, &unweighted, sigma)),
         };
         let Some(worst) = worst else {
             break;
         };
         let removed = measurements.swap_remove(worst);
+        let condition = match rule {
+            Rule::Any => condition_of(measurements),
+            Rule::DarkerOnly => {
+                unweighted = fit_luminance(measurements);
+                unweighted.as_ref().map_or(f64::INFINITY, |u| u.condition)
+            }
+        };
         match weighted_fit(chi, measurements) {
-            Some(refit) if condition_of(measurements) <= context.max_condition => fit = refit,
+            Some(refit) if condition <= context.max_condition => fit = refit,
             _ => {
                 // Dropping it leaves the lights degenerate: keep it.
                 measurements.push(removed);
@@ -510,11 +533,15 @@ fn worst_outlier(
     worst
 }
 
-/// The light darkest relative to the unweighted least-squares fit (reading over prediction),
-/// among those significantly darker than it. Unweighted, because inverse-variance weights
-/// favour the dark readings, which are the shadowed ones.
-fn darkest_outlier(chi: &ChiSquare, measurements: &[Measurement], sigma: f64) -> Option<usize> {
-    let fit = fit_normal_equations(measurements)?;
+/// The light darkest relative to `fit`, the unweighted least-squares fit of `measurements`
+/// (reading over prediction), among those significantly darker than it. Unweighted, because
+/// inverse-variance weights favour the dark readings, which are the shadowed ones.
+fn darkest_outlier(
+    chi: &ChiSquare,
+    measurements: &[Measurement],
+    fit: &LuminanceFit,
+    sigma: f64,
+) -> Option<usize> {
     let mut darkest = None;
     let mut lowest_ratio = f64::INFINITY;
     for (k, m) in measurements.iter().enumerate() {
