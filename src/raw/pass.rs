@@ -261,19 +261,18 @@ pub fn bin2x2(mosaic: &Mosaic, pass: LinearPass) -> Result<(LightFrame, SampleCo
         linear_row(
             &sites,
             y % 2,
-            &mosaic.samples[at.clone()],
+            &mosaic.samples[at],
             &mut row.values,
             &mut row.saturated,
         );
         count_row(counts, &row.values, &row.saturated, pass.below_black_floor);
         if let Some(d) = pass.dark {
-            let dark_saturated = &d.saturated[at.clone()];
-            subtract_row(
-                &mut row.values,
-                &mut row.saturated,
-                &d.values[at],
-                dark_saturated,
-            );
+            // Any dark mosaic serves: linear or kept as DN, with or without saturation flags.
+            let dark = d.row(y, &mut row.dark);
+            match d.saturated_row(y) {
+                Some(flags) => subtract_row(&mut row.values, &mut row.saturated, dark, flags),
+                None => subtract_row(&mut row.values, &mut [], dark, &[]),
+            }
         }
     };
     let (w, h) = Resolution::Half.size(width, height);
@@ -315,11 +314,13 @@ pub fn bin2x2(mosaic: &Mosaic, pass: LinearPass) -> Result<(LightFrame, SampleCo
     Ok((frame, counts))
 }
 
-/// One sample row after the pass: linear values (dark subtracted) and saturation flags.
+/// One sample row after the pass: linear values (dark subtracted) and saturation flags, and
+/// the scratch a dark frame kept as DN is read into.
 #[derive(Default)]
 struct PassRow {
     values: Vec<f32>,
     saturated: Vec<bool>,
+    dark: Vec<f32>,
 }
 
 /// Bins a row of cells from its two sample rows into `r`, `g`, `b` and `saturated`, summing
@@ -499,6 +500,33 @@ mod tests {
             .unwrap();
         let flagged: Vec<usize> = (0..w * h).filter(|&i| kept.saturated_at(i)).collect();
         assert_eq!(flagged, clipped);
+    }
+
+    /// The binning pass reads any dark mosaic: one kept as DN with no saturation flags (it
+    /// clips nowhere) gives the bits and counts of the same frame linearised with its flags.
+    #[test]
+    fn binning_subtracts_a_dark_frame_kept_as_dn_as_a_linear_one() {
+        let light = mosaic(34, 31, "GBRG", 5);
+        let mut dark = mosaic(34, 31, "GBRG", 9);
+        dark.samples.iter_mut().for_each(|s| *s %= 200); // around black: nothing clips
+        let linear = dark.linearize().unwrap();
+        let (kept, _) = keep_dn(dark, LinearPass::default()).unwrap();
+        assert!(kept.saturated.is_empty() && kept.values.is_empty());
+        let binned = |dark: &LinearMosaic| {
+            let pass = LinearPass {
+                dark: Some(dark),
+                below_black_floor: Some(-0.01),
+            };
+            bin2x2(&light, pass).unwrap()
+        };
+        let ((from_linear, a), (from_dn, b)) = (binned(&linear), binned(&kept));
+        assert_eq!(a, b);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for c in 0..3 {
+            let (x, y) = (from_linear.rgb.channels()[c], from_dn.rgb.channels()[c]);
+            assert_eq!(bits(&x.data), bits(&y.data));
+        }
+        assert_eq!(from_linear.saturated, from_dn.saturated);
     }
 
     #[test]
