@@ -327,13 +327,21 @@ impl LinearMosaic {
 
     /// 2x2 binning: R and B of each cell, the mean of its two G.
     pub(super) fn bin2x2(&self) -> LightFrame {
-        let width = self.width;
-        let (frame, _) = bin_cells(
-            (self.width, self.height),
-            self.pattern,
-            || (),
-            |x, y, _| (self.value(y * width + x), self.saturated_at(y * width + x)),
-        );
+        let fill_row = |y: usize, row: &mut SampleRow, _: &mut ()| {
+            let SampleRow {
+                values,
+                saturated,
+                scratch,
+            } = row;
+            values.clear();
+            values.extend_from_slice(self.row(y, scratch));
+            saturated.clear();
+            match self.saturated_row(y) {
+                Some(flags) => saturated.extend_from_slice(flags),
+                None => saturated.resize(self.width, false),
+            }
+        };
+        let (frame, _) = bin_rows((self.width, self.height), self.pattern, || (), fill_row);
         frame
     }
 }
@@ -366,17 +374,26 @@ impl SharedDark {
     }
 }
 
-/// 2x2 binning of a `width x height` mosaic laid out as `pattern`, whose sample at `(x, y)` is
-/// `sample(x, y, acc)` (its linear value and whether it is saturated): R and B of each cell,
-/// the mean of its two G, saturated where any of its samples is. Rows of cells run in
-/// parallel, each with its own `acc` from `new_acc`, returned one per row of cells. Every
-/// sample of those rows is read, the odd last column's too (not binned), so `sample` can count
-/// what it reads; an odd last row is not read.
-pub(super) fn bin_cells<A: Send>(
+/// One sample row as [`bin_rows`] bins it: linear values and saturation flags, `width` of
+/// each, and `scratch` for whatever the row's source needs (a row linearised from DN).
+#[derive(Default)]
+pub(super) struct SampleRow {
+    pub values: Vec<f32>,
+    pub saturated: Vec<bool>,
+    pub scratch: Vec<f32>,
+}
+
+/// 2x2 binning of a `width x height` mosaic laid out as `pattern`, whose sample row `y`
+/// `fill_row(y, row, acc)` writes into `row` (values and flags, `width` each): R and B of each
+/// cell, the mean of its two G, saturated where any of its samples is. Rows of cells run in
+/// parallel, each with its own `acc` from `new_acc`, returned one per row of cells. Whole rows
+/// are filled, the odd last column's sample too (not binned), so `fill_row` can count what it
+/// reads; an odd last row is not filled.
+pub(super) fn bin_rows<A: Send>(
     (width, height): (usize, usize),
     pattern: [[u8; 2]; 2],
     new_acc: impl Fn() -> A + Sync,
-    sample: impl Fn(usize, usize, &mut A) -> (f32, bool) + Sync,
+    fill_row: impl Fn(usize, &mut SampleRow, &mut A) + Sync,
 ) -> (LightFrame, Vec<A>) {
     let (w, h) = Resolution::Half.size(width, height);
     let mut rgb = RgbPlanes::new(w, h);
@@ -389,30 +406,16 @@ pub(super) fn bin_cells<A: Send>(
         .zip(rgb.b.data.par_chunks_mut(w.max(1)))
         .zip(saturated.data.par_chunks_mut(w.max(1)))
         .enumerate()
-        .map(|(v, (((r, g), b), sat))| {
-            let mut acc = new_acc();
-            for u in 0..w {
-                let mut sum = [0.0f32; 3];
-                let mut any_saturated = false;
-                for j in 0..2 {
-                    for i in 0..2 {
-                        let (value, s) = sample(2 * u + i, 2 * v + j, &mut acc);
-                        any_saturated |= s;
-                        sum[pattern[j][i] as usize] += value;
-                    }
-                }
-                r[u] = sum[0];
-                g[u] = 0.5 * sum[1];
-                b[u] = sum[2];
-                sat[u] = any_saturated;
-            }
-            for x in 2 * w..width {
-                for y in [2 * v, 2 * v + 1] {
-                    sample(x, y, &mut acc);
-                }
-            }
-            acc
-        })
+        .map_init(
+            || [SampleRow::default(), SampleRow::default()],
+            |[top, bottom], (v, (((r, g), b), sat))| {
+                let mut acc = new_acc();
+                fill_row(2 * v, top, &mut acc);
+                fill_row(2 * v + 1, bottom, &mut acc);
+                bin_row_pair(pattern, [top, bottom], [r, g, b], sat);
+                acc
+            },
+        )
         .collect();
     let frame = LightFrame {
         rgb,
@@ -422,6 +425,35 @@ pub(super) fn bin_cells<A: Send>(
         cfa_dn: None,
     };
     (frame, accs)
+}
+
+/// Bins a row of cells from its two sample rows into `r`, `g`, `b` and `saturated`, each
+/// cell's samples summed from 0.0, top row first, left to right.
+fn bin_row_pair(
+    pattern: [[u8; 2]; 2],
+    rows: [&SampleRow; 2],
+    [r, g, b]: [&mut [f32]; 3],
+    saturated: &mut [bool],
+) {
+    for (u, ((r, g), (b, sat))) in r
+        .iter_mut()
+        .zip(g.iter_mut())
+        .zip(b.iter_mut().zip(saturated.iter_mut()))
+        .enumerate()
+    {
+        let mut sum = [0.0f32; 3];
+        let mut any_saturated = false;
+        for (row, channels) in rows.iter().zip(pattern) {
+            for (i, channel) in channels.into_iter().enumerate() {
+                sum[channel as usize] += row.values[2 * u + i];
+                any_saturated |= row.saturated[2 * u + i];
+            }
+        }
+        *r = sum[0];
+        *g = 0.5 * sum[1];
+        *b = sum[2];
+        *sat = any_saturated;
+    }
 }
 
 /// Mirrors an index about the border of a line of `n` samples (keeps the CFA phase where

@@ -15,9 +15,9 @@
 
 use rayon::prelude::*;
 
-use super::mosaic::{LinearMosaic, Mosaic, Resolution};
+use super::mosaic::{bin_rows, LinearMosaic, Mosaic, Resolution, SampleRow};
 use crate::error::Result;
-use crate::plane::{DnMosaic, LightFrame, Mask, RgbPlanes};
+use crate::plane::{DnMosaic, LightFrame};
 
 /// What a pass counted over a light frame's own samples (before any dark frame is
 /// subtracted), for `develop::check_plausible`.
@@ -244,17 +244,16 @@ pub fn keep_dn(mosaic: Mosaic, pass: LinearPass) -> Result<(LinearMosaic, Sample
 /// G): `linearize`, `LinearMosaic::subtract_shared` and `LinearMosaic::bin2x2` in one pass, with no
 /// full-size linear mosaic made. Samples of an odd last row or column are counted, not binned.
 ///
-/// Each row of cells linearises, counts and subtracts its two sample rows with the
-/// full-resolution pass's row loops (which the compiler vectorises) into two rows of scratch,
-/// then bins them: a closure per sample, reading the dark frame sample by sample, took
-/// 140 ms a 16 MP frame.
+/// Each sample row is linearised, counted and dark-subtracted with the full-resolution
+/// pass's row loops (which the compiler vectorises), then binned (`mosaic::bin_rows`): a
+/// closure per sample, reading the dark frame sample by sample, took 140 ms a 16 MP frame.
 pub fn bin2x2(mosaic: &Mosaic, pass: LinearPass) -> Result<(LightFrame, SampleCounts)> {
     mosaic.validate()?;
     check_dark(mosaic, pass.dark)?;
     let sites = Sites::of(mosaic);
     let (width, height) = (mosaic.width, mosaic.height);
     // Sample row `y` linearised, counted and dark-subtracted into `row`.
-    let prepare = |y: usize, row: &mut PassRow, counts: &mut SampleCounts| {
+    let fill_row = |y: usize, row: &mut SampleRow, counts: &mut SampleCounts| {
         row.values.resize(width, 0.0);
         row.saturated.resize(width, false);
         let at = y * width..(y + 1) * width;
@@ -268,89 +267,28 @@ pub fn bin2x2(mosaic: &Mosaic, pass: LinearPass) -> Result<(LightFrame, SampleCo
         count_row(counts, &row.values, &row.saturated, pass.below_black_floor);
         if let Some(d) = pass.dark {
             // Any dark mosaic serves: linear or kept as DN, with or without saturation flags.
-            let dark = d.row(y, &mut row.dark);
+            let dark = d.row(y, &mut row.scratch);
             match d.saturated_row(y) {
                 Some(flags) => subtract_row(&mut row.values, &mut row.saturated, dark, flags),
                 None => subtract_row(&mut row.values, &mut [], dark, &[]),
             }
         }
     };
-    let (w, h) = Resolution::Half.size(width, height);
-    let mut rgb = RgbPlanes::new(w, h);
-    let mut saturated = Mask::new(w, h, false);
-    let rows: Vec<SampleCounts> = rgb
-        .r
-        .data
-        .par_chunks_mut(w.max(1))
-        .zip(rgb.g.data.par_chunks_mut(w.max(1)))
-        .zip(rgb.b.data.par_chunks_mut(w.max(1)))
-        .zip(saturated.data.par_chunks_mut(w.max(1)))
-        .enumerate()
-        .map_init(
-            || [PassRow::default(), PassRow::default()],
-            |[top, bottom], (v, (((r, g), b), sat))| {
-                let mut counts = empty_counts(&pass, 2 * width);
-                prepare(2 * v, top, &mut counts);
-                prepare(2 * v + 1, bottom, &mut counts);
-                bin_row_pair(mosaic.pattern, [top, bottom], [r, g, b], sat);
-                counts
-            },
-        )
-        .collect();
+    let (frame, rows) = bin_rows(
+        (width, height),
+        mosaic.pattern,
+        || empty_counts(&pass, 2 * width),
+        fill_row,
+    );
     // The odd last row is not binned, but it is counted.
+    let h = Resolution::Half.size(width, height).1;
     let mut rest = empty_counts(&pass, (height - 2 * h) * width);
-    let mut scratch = PassRow::default();
+    let mut scratch = SampleRow::default();
     for y in 2 * h..height {
-        prepare(y, &mut scratch, &mut rest);
+        fill_row(y, &mut scratch, &mut rest);
     }
     let counts = rows.into_iter().fold(rest, SampleCounts::plus);
-    let frame = LightFrame {
-        rgb,
-        saturated: Some(saturated),
-        cfa: None,
-        dn: None,
-        cfa_dn: None,
-    };
     Ok((frame, counts))
-}
-
-/// One sample row after the pass: linear values (dark subtracted) and saturation flags, and
-/// the scratch a dark frame kept as DN is read into.
-#[derive(Default)]
-struct PassRow {
-    values: Vec<f32>,
-    saturated: Vec<bool>,
-    dark: Vec<f32>,
-}
-
-/// Bins a row of cells from its two sample rows into `r`, `g`, `b` and `saturated`, summing
-/// each cell's samples in the order `mosaic::bin_cells` does (top row first, left to right,
-/// from 0.0), so to the same bits.
-fn bin_row_pair(
-    pattern: [[u8; 2]; 2],
-    rows: [&PassRow; 2],
-    [r, g, b]: [&mut [f32]; 3],
-    saturated: &mut [bool],
-) {
-    for (u, ((r, g), (b, sat))) in r
-        .iter_mut()
-        .zip(g.iter_mut())
-        .zip(b.iter_mut().zip(saturated.iter_mut()))
-        .enumerate()
-    {
-        let mut sum = [0.0f32; 3];
-        let mut any_saturated = false;
-        for (row, channels) in rows.iter().zip(pattern) {
-            for (i, channel) in channels.into_iter().enumerate() {
-                sum[channel as usize] += row.values[2 * u + i];
-                any_saturated |= row.saturated[2 * u + i];
-            }
-        }
-        *r = sum[0];
-        *g = 0.5 * sum[1];
-        *b = sum[2];
-        *sat = any_saturated;
-    }
 }
 
 #[cfg(test)]
