@@ -9,8 +9,13 @@
 //! differently (thread flanks, gaps) then still compare like for like. `raw` does not know what
 //! makes the shading vectors (lights, a rig); the caller samples them on a coarse grid.
 
+mod row_sums;
+
+use std::ops::Range;
+
 use rayon::prelude::*;
 
+use self::row_sums::RowSums;
 use super::mosaic::LinearMosaic;
 use crate::error::{Error, Result};
 
@@ -86,6 +91,18 @@ impl ShadingField {
             0.0
         };
         (i, t.clamp(0.0, 1.0))
+    }
+
+    /// The columns of a row's cell `c` of `count`: `step` wide, the last one to the border
+    /// (so the cells cover the row: the last starts at most two samples before its end).
+    fn cell_columns(&self, c: usize, count: usize) -> Range<usize> {
+        let first = c * self.step;
+        let last = if c + 1 == count {
+            self.width
+        } else {
+            (first + self.step).min(self.width)
+        };
+        first..last
     }
 
     /// Every frame's shading vector on row `y` at each node column:
@@ -285,12 +302,8 @@ impl<'a> SiteFitter<'a> {
             .collect();
         sums_of_row.accumulate(frames, inverse, field, &cells, y);
         for (c, cell) in cells.iter().enumerate() {
-            let first = c * field.step;
-            let last = if c + 1 == cells.len() {
-                w
-            } else {
-                (first + field.step).min(w)
-            };
+            let columns = field.cell_columns(c, cells.len());
+            let (first, last) = (columns.start, columns.end);
             let (lo, hi) = (first, ((c + 1) * field.step).min(field.width - 1));
             let sums = &self.sums[y * w + first..y * w + last];
             fit_run(
@@ -440,83 +453,6 @@ fn fit_run_portable(
     }
 }
 
-/// One row's right-hand sides for [`RowCell::fit_every_frame`] (`sum_k v_k start_k` and
-/// `sum_k v_k step_k` per site, over every frame), and which sites are saturated in some
-/// frame. Summed frame by frame over the whole row, so that the loops run over contiguous
-/// samples and vectorise; a site at a time (eleven frames' samples from eleven places) took
-/// most of a second at 16 MP. The sums are the same, in the same order, as a site at a time.
-#[derive(Default)]
-struct RowSums {
-    /// Frame k's samples of the row, where it keeps them as DN.
-    values: Vec<f32>,
-    /// Frame k's white-balanced samples of the row.
-    balanced: Vec<f64>,
-    start: [Vec<f64>; 3],
-    step: [Vec<f64>; 3],
-    saturated: Vec<bool>,
-}
-
-impl RowSums {
-    fn accumulate(
-        &mut self,
-        frames: &[LinearMosaic],
-        inverse: &[[f64; 3]],
-        field: &ShadingField,
-        cells: &[RowCell],
-        y: usize,
-    ) {
-        let w = field.width;
-        let pattern = frames[0].pattern[y % 2].map(usize::from);
-        for plane in self.start.iter_mut().chain(&mut self.step) {
-            plane.clear();
-            plane.resize(w, 0.0);
-        }
-        self.saturated.clear();
-        self.saturated.resize(w, false);
-        self.balanced.resize(w, 0.0);
-        for (k, frame) in frames.iter().enumerate() {
-            let inv = pattern.map(|c| inverse[k][c]);
-            let values = frame.row(y, &mut self.values);
-            for (pair, values) in self.balanced.chunks_mut(2).zip(values.chunks(2)) {
-                for (b, (&v, inv)) in pair.iter_mut().zip(values.iter().zip(inv)) {
-                    *b = v as f64 * inv;
-                }
-            }
-            if let Some(flags) = frame.saturated_row(y) {
-                for (s, &f) in self.saturated.iter_mut().zip(flags) {
-                    *s |= f;
-                }
-            }
-            for (c, cell) in cells.iter().enumerate() {
-                let first = c * field.step;
-                let last = if c + 1 == cells.len() {
-                    w
-                } else {
-                    (first + field.step).min(w)
-                };
-                let (a, d) = (cell.start[k], cell.step[k]);
-                let v = &self.balanced[first..last];
-                for m in 0..3 {
-                    for (r, &v) in self.start[m][first..last].iter_mut().zip(v) {
-                        *r += v * a[m];
-                    }
-                    for (r, &v) in self.step[m][first..last].iter_mut().zip(v) {
-                        *r += v * d[m];
-                    }
-                }
-            }
-        }
-    }
-
-    /// Site `x`'s two sums.
-    fn rhs(&self, x: usize) -> ([f64; 3], [f64; 3]) {
-        (
-            std::array::from_fn(|m| self.start[m][x]),
-            std::array::from_fn(|m| self.step[m][x]),
-        )
-    }
-}
-
 /// The least-squares `b` with `b . s = v` over `samples` of `(s, v)`.
 fn fit_scaled_normal<'a>(samples: impl Iterator<Item = (&'a [f64; 3], f64)>) -> Option<[f64; 3]> {
     let mut m = [[0.0f64; 3]; 3];
@@ -636,16 +572,18 @@ mod tests {
     }
 
     /// A `w x h` RGGB stack of random samples under lights whose direction and power change
-    /// across the mosaic (near lights), one site in twelve saturated per frame: the frames,
-    /// their illuminants' colours, the shading field and the sites' sums.
-    fn random_stack(
+    /// across the mosaic (near lights), sampled every `step` samples, one site in twelve
+    /// saturated per frame: the frames, their illuminants' colours, the shading field and the
+    /// sites' sums.
+    pub(super) fn random_stack(
         (w, h): (usize, usize),
+        step: usize,
         seed: u64,
     ) -> (Vec<LinearMosaic>, Vec<[f32; 3]>, ShadingField, Vec<f32>) {
         use rand::{Rng, SeedableRng};
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         let base = lights();
-        let field = ShadingField::sample(w, h, 8, |x, y| {
+        let field = ShadingField::sample(w, h, step, |x, y| {
             Ok(base
                 .iter()
                 .map(|s| {
@@ -679,7 +617,7 @@ mod tests {
 
     #[test]
     fn the_per_cell_fit_equals_the_fit_by_definition() {
-        let (mut frames, colours, field, mut sums) = random_stack((37, 23), 7);
+        let (mut frames, colours, field, mut sums) = random_stack((37, 23), 8, 7);
         sums[5] = 0.0; // a black site
         for frame in &mut frames[2..] {
             frame.saturated[9] = true; // two usable samples: no fit, the flat estimate
@@ -711,7 +649,7 @@ mod tests {
         // Taller than two of the demosaic's bands, so that bands start mid-mosaic and
         // refit the rows they share; black sites in runs across band boundaries.
         let (w, h) = (45, 150);
-        let (frames, colours, field, mut sums) = random_stack((w, h), 11);
+        let (frames, colours, field, mut sums) = random_stack((w, h), 8, 11);
         for i in (0..w * h).step_by(97) {
             sums[i..(i + 3).min(w * h)].fill(0.0);
         }
