@@ -105,6 +105,15 @@ impl ShadingField {
         first..last
     }
 
+    /// The cells of a row whose node vectors are `nodes` (as [`ShadingField::row_nodes`] gives
+    /// them): one between each node column and the next.
+    fn row_cells<'a>(&self, nodes: &'a [[f64; 3]]) -> Vec<RowCell<'a>> {
+        let f = self.frames;
+        (0..self.nx - 1)
+            .map(|i| RowCell::new(&nodes[i * f..(i + 1) * f], &nodes[(i + 1) * f..(i + 2) * f]))
+            .collect()
+    }
+
     /// Every frame's shading vector on row `y` at each node column:
     /// `out[i * frames + k]`, frame k's vector at node column i.
     fn row_nodes(&self, y: usize) -> Vec<[f64; 3]> {
@@ -297,9 +306,7 @@ impl<'a> SiteFitter<'a> {
         let pattern = frames[0].pattern;
         let n = frames.len();
         let nodes = field.row_nodes(y);
-        let cells: Vec<RowCell> = (0..field.nx - 1)
-            .map(|i| RowCell::new(&nodes[i * n..(i + 1) * n], &nodes[(i + 1) * n..(i + 2) * n]))
-            .collect();
+        let cells = field.row_cells(&nodes);
         sums_of_row.accumulate(frames, inverse, field, &cells, y);
         for (c, cell) in cells.iter().enumerate() {
             let columns = field.cell_columns(c, cells.len());

@@ -53,8 +53,7 @@ pub(super) fn fit_normal_equations(measurements: &[Measurement]) -> Option<Fit> 
     }
     let a = a.matrix();
     let a_inv = a.try_inverse()?;
-    // Frobenius-norm condition number of A = L^T L, square-rooted to speak of L.
-    let condition = (a.norm() * a_inv.norm()).sqrt();
+    let condition = condition_from(&a, &a_inv);
     Some(Fit {
         n_lum: a_inv * b_lum,
         n_rgb: b_rgb.map(|b| a_inv * b),
@@ -88,7 +87,7 @@ pub(super) fn fit_luminance(measurements: &[Measurement]) -> Option<LuminanceFit
     Some(LuminanceFit {
         n_lum: a_inv * b_lum,
         a_inv,
-        condition: (a.norm() * a_inv.norm()).sqrt(),
+        condition: condition_from(&a, &a_inv),
     })
 }
 
@@ -135,7 +134,14 @@ pub(super) fn condition_of(measurements: &[Measurement]) -> f64 {
     }
     let a = gram.matrix();
     a.try_inverse()
-        .map_or(f64::INFINITY, |inv| (a.norm() * inv.norm()).sqrt())
+        .map_or(f64::INFINITY, |inv| condition_from(&a, &inv))
+}
+
+/// The Frobenius-norm condition number of `A = L^T L` from `A` and its inverse,
+/// square-rooted to speak of `L`: one definition for every fit, so that [`fit_luminance`]'s
+/// equals [`fit_normal_equations`]' and [`condition_of`]'s to the bit.
+fn condition_from(a: &Matrix3<f64>, a_inv: &Matrix3<f64>) -> f64 {
+    (a.norm() * a_inv.norm()).sqrt()
 }
 
 /// A running sum of weighted outer products `w l l^T` of light directions, its six distinct

@@ -222,12 +222,7 @@ mod tests {
             let mut sums = RowSums::default();
             for y in 0..9 {
                 let nodes = field.row_nodes(y);
-                let n = frames.len();
-                let cells: Vec<RowCell> = (0..field.nx - 1)
-                    .map(|i| {
-                        RowCell::new(&nodes[i * n..(i + 1) * n], &nodes[(i + 1) * n..(i + 2) * n])
-                    })
-                    .collect();
+                let cells = field.row_cells(&nodes);
                 sums.accumulate(&frames, &inverse, &field, &cells, y);
                 let want = sums_a_frame_at_a_time(&frames, &inverse, &field, &cells, y);
                 for x in 0..w {
