@@ -110,6 +110,22 @@ fn compare(canvas: &image::RgbImage, cpu: &image::RgbImage) -> (f64, f64) {
     (far as f64 / n, sum as f64 / n)
 }
 
+/// The browser's composition of the loupe's JPEG bands (`check`: the page's self-test of
+/// it) is each whole view: the demo's 160 x 120 pixels in four bands of 32 rows or fewer,
+/// no pixel black (every pixel of the demo is solved: a band missing or misplaced leaves
+/// black rows), and every band's pixels exactly where the band drawn alone puts them (the
+/// same decoder both times, so nothing but a band drawn over another's rows can differ).
+fn loupe_bands_compose_into_the_whole_views(check: &Value) {
+    for view in ["albedo", "normal"] {
+        let c = &check[view];
+        assert_eq!(c["width"], 160, "{view}: {c}");
+        assert_eq!(c["height"], 120, "{view}: {c}");
+        assert_eq!(c["bands"], 4, "{view}: {c}");
+        assert_eq!(c["black_pixels"], 0, "{view}: {c}");
+        assert_eq!(c["band_max_difference"], 0, "{view}: {c}");
+    }
+}
+
 #[test]
 fn demo_page_decodes_draws_and_matches_the_cpu_relight() {
     if skip("demo_page_decodes_draws_and_matches_the_cpu_relight") {
@@ -132,6 +148,7 @@ fn demo_page_decodes_draws_and_matches_the_cpu_relight() {
         assert!(result["images"].as_u64().unwrap() >= 11, "{result}");
         assert_eq!(result["webgl"], true, "{result}");
         assert_eq!(result["gl_error"], 0, "{result}");
+        loupe_bands_compose_into_the_whole_views(&result["loupe"]);
         // Every pixel of the demo is solved, so all of the canvas is shaded.
         assert_eq!(result["lit_pixels"], 160 * 120, "{result}");
         assert_eq!(result["changed_when_light_moved"], true, "{result}");

@@ -563,6 +563,17 @@ pub fn png_bytes(img: &RgbImage) -> Vec<u8> {
 
 /// JPEG bytes of an 8-bit RGB image.
 pub fn jpeg_bytes(img: &RgbImage, quality: u8, chroma: SamplingFactor) -> Vec<u8> {
+    let size = (img.width() as usize, img.height() as usize);
+    jpeg_bytes_of(img.as_raw(), size, quality, chroma)
+}
+
+/// JPEG bytes of `(width, height)` 8-bit RGB pixels, row by row.
+pub fn jpeg_bytes_of(
+    pixels: &[u8],
+    (width, height): (usize, usize),
+    quality: u8,
+    chroma: SamplingFactor,
+) -> Vec<u8> {
     let mut out = Vec::new();
     let mut encoder = jpeg_encoder::Encoder::new(&mut out, quality);
     encoder.set_sampling_factor(chroma);
@@ -570,9 +581,9 @@ pub fn jpeg_bytes(img: &RgbImage, quality: u8, chroma: SamplingFactor) -> Vec<u8
     encoder.set_optimized_huffman_tables(true);
     encoder
         .encode(
-            img.as_raw(),
-            img.width() as u16,
-            img.height() as u16,
+            pixels,
+            width as u16,
+            height as u16,
             jpeg_encoder::ColorType::Rgb,
         )
         .expect("an in-memory RGB image under JPEG's 65535-pixel side always encodes");

@@ -1,5 +1,6 @@
 //! The loupe's sources: the albedo and normal maps at full resolution (or every n-th pixel)
-//! as JPEGs sized to what the page's budget leaves.
+//! as bands of JPEG rows, sized to what the page's budget leaves (the page draws a view's
+//! bands into one canvas).
 
 use image::RgbImage;
 use jpeg_encoder::SamplingFactor;
@@ -11,8 +12,24 @@ use super::images::{self, FullMaps};
 /// artefacts below a thread's edge contrast; under it, resolution is given up instead.
 const LOUPE_QUALITIES: [u8; 3] = [88, 80, 72];
 
-/// The loupe's views as JPEGs: the finest sampling, then the best quality, that fits the
-/// budget.
+/// Rows per band: each view is encoded as bands of this many rows, each its own JPEG, so
+/// that the encodes share out over all cores (two whole views kept one core idle while the
+/// slower normal view finished) and a size sample is a subset of the bands themselves. A
+/// whole number of 4:2:0 blocks (16 rows), so the bands' blocks are the whole view's.
+const LOUPE_BAND_ROWS: usize = 32;
+
+/// One band in this many goes into the size sample.
+const SAMPLE_EVERY: usize = 8;
+
+/// A quality is skipped only when its predicted size is over the budget by more than this
+/// factor (the prediction from a sample of bands is a few percent off either way).
+const PREDICTION_MARGIN: f64 = 1.05;
+
+/// One band of one view: the view's index in the sources and the band's first row.
+type BandId = (usize, usize);
+
+/// The loupe's views as JPEG bands: the finest sampling, then the best quality, that fits
+/// the budget.
 fn loupe_views(maps: &FullMaps, budget: usize) -> Loupe {
     let mut step = 1;
     loop {
@@ -21,30 +38,43 @@ fn loupe_views(maps: &FullMaps, budget: usize) -> Loupe {
             .into_iter()
             .filter_map(|(name, img)| img.map(|i| (name, i)))
             .collect();
+        let bands = band_ids(&sources);
         let mut base64_bytes = 0;
         for (k, quality) in LOUPE_QUALITIES.into_iter().enumerate() {
             // A full encode at 16 MP takes most of a second: a quality whose sample says it
-            // will not fit is skipped (the last one is always tried).
+            // will not fit is skipped (the last one is always tried). The sample's bands are
+            // kept for the whole encode when the quality is taken.
             let last = k + 1 == LOUPE_QUALITIES.len();
-            if !last && step < 16 {
-                if let Some(predicted) = predicted_bytes(&sources, quality) {
-                    if predicted as f64 > budget as f64 * PREDICTION_MARGIN {
-                        base64_bytes = predicted;
-                        continue;
-                    }
+            let sampled = if !last && step < 16 {
+                encode_bands(&sources, &sample_bands(&bands, &sources), quality)
+            } else {
+                Vec::new()
+            };
+            if !sampled.is_empty() {
+                let predicted = predicted_bytes(&sources, &sampled);
+                if predicted as f64 > budget as f64 * PREDICTION_MARGIN {
+                    base64_bytes = predicted;
+                    continue;
                 }
             }
-            let views: Vec<(String, Vec<u8>)> = sources
-                .par_iter()
-                .map(|(name, img)| {
-                    (
-                        name.to_string(),
-                        images::jpeg_bytes(img, quality, chroma(name)),
-                    )
-                })
+            let rest: Vec<BandId> = bands
+                .iter()
+                .filter(|id| !sampled.iter().any(|(done, _)| done == *id))
+                .copied()
                 .collect();
-            base64_bytes = views.iter().map(|(_, b)| b.len() * 4 / 3).sum();
+            let mut encoded = sampled;
+            encoded.extend(encode_bands(&sources, &rest, quality));
+            encoded.sort_by_key(|(id, _)| *id);
+            base64_bytes = encoded.iter().map(|(_, b)| b.len() * 4 / 3).sum();
             if base64_bytes <= budget || step >= 16 {
+                let views = encoded
+                    .into_iter()
+                    .map(|((view, row), bytes)| LoupeBand {
+                        view: sources[view].0.to_string(),
+                        row,
+                        bytes,
+                    })
+                    .collect();
                 return Loupe {
                     step,
                     quality,
@@ -58,46 +88,68 @@ fn loupe_views(maps: &FullMaps, budget: usize) -> Loupe {
     }
 }
 
-/// A quality is skipped only when its predicted size is over the budget by more than this
-/// factor (the prediction from a sample of rows is a few percent off either way).
-const PREDICTION_MARGIN: f64 = 1.05;
+/// Every band of every source, view by view, top to bottom.
+fn band_ids(sources: &[(&str, RgbImage)]) -> Vec<BandId> {
+    let mut ids = Vec::new();
+    for (view, (_, img)) in sources.iter().enumerate() {
+        ids.extend(
+            (0..img.height() as usize)
+                .step_by(LOUPE_BAND_ROWS)
+                .map(|row| (view, row)),
+        );
+    }
+    ids
+}
 
-/// Rows per band of the size sample: a whole number of JPEG blocks (16 for 4:2:0).
-const SAMPLE_BAND_ROWS: u32 = 16;
-
-/// One band in this many goes into the size sample.
-const SAMPLE_EVERY: u32 = 8;
-
-/// The base64 bytes `sources` would take at `quality`, predicted from a JPEG of every
-/// [`SAMPLE_EVERY`]-th band of rows scaled by the rows it stands for; `None` for images too
-/// small to sample (encoding them whole is cheap).
-fn predicted_bytes(sources: &[(&str, RgbImage)], quality: u8) -> Option<usize> {
-    let total: f64 = sources
-        .par_iter()
-        .map(|(name, img)| {
-            let (w, h) = img.dimensions();
-            let bands = h / SAMPLE_BAND_ROWS;
-            if bands < 4 * SAMPLE_EVERY {
-                return None;
-            }
-            let sampled: Vec<u32> = (0..bands).step_by(SAMPLE_EVERY as usize).collect();
-            let rows = sampled.len() as u32 * SAMPLE_BAND_ROWS;
-            let mut sample = RgbImage::new(w, rows);
-            for (j, &band) in sampled.iter().enumerate() {
-                for r in 0..SAMPLE_BAND_ROWS {
-                    let (from, to) = (band * SAMPLE_BAND_ROWS + r, j as u32 * SAMPLE_BAND_ROWS + r);
-                    let row = (from * w * 3) as usize..((from + 1) * w * 3) as usize;
-                    let at = (to * w * 3) as usize;
-                    sample.as_mut()[at..at + w as usize * 3].copy_from_slice(&img.as_raw()[row]);
-                }
-            }
-            let bytes = images::jpeg_bytes(&sample, quality, chroma(name)).len();
-            Some(bytes as f64 * h as f64 / rows as f64 * 4.0 / 3.0)
-        })
-        .collect::<Option<Vec<f64>>>()?
+/// The size sample: every [`SAMPLE_EVERY`]-th band of each view; none for a view too small
+/// to sample (fewer than four sampled bands: encoding it whole is cheap).
+fn sample_bands(bands: &[BandId], sources: &[(&str, RgbImage)]) -> Vec<BandId> {
+    let too_small = sources
         .iter()
+        .any(|(_, img)| (img.height() as usize).div_ceil(LOUPE_BAND_ROWS) < 4 * SAMPLE_EVERY);
+    if too_small {
+        return Vec::new();
+    }
+    let every = SAMPLE_EVERY * LOUPE_BAND_ROWS;
+    bands
+        .iter()
+        .filter(|(_, row)| row % every == 0)
+        .copied()
+        .collect()
+}
+
+/// JPEGs of the bands `ids`, encoded in parallel (one band per task).
+fn encode_bands(
+    sources: &[(&str, RgbImage)],
+    ids: &[BandId],
+    quality: u8,
+) -> Vec<(BandId, Vec<u8>)> {
+    ids.par_iter()
+        .map(|&(view, row)| {
+            let (name, img) = &sources[view];
+            let (w, h) = (img.width() as usize, img.height() as usize);
+            let rows = LOUPE_BAND_ROWS.min(h - row);
+            let pixels = &img.as_raw()[row * w * 3..(row + rows) * w * 3];
+            let bytes = images::jpeg_bytes_of(pixels, (w, rows), quality, chroma(name));
+            ((view, row), bytes)
+        })
+        .collect()
+}
+
+/// The base64 bytes of all views predicted from the `sampled` bands' JPEGs, each view's
+/// scaled by the rows its sample stands for.
+fn predicted_bytes(sources: &[(&str, RgbImage)], sampled: &[(BandId, Vec<u8>)]) -> usize {
+    let total: f64 = (0..sources.len())
+        .map(|view| {
+            let h = sources[view].1.height() as usize;
+            let mine = sampled.iter().filter(|((v, _), _)| *v == view);
+            let (rows, bytes) = mine.fold((0, 0), |(rows, bytes), ((_, row), jpeg)| {
+                (rows + LOUPE_BAND_ROWS.min(h - row), bytes + jpeg.len())
+            });
+            bytes as f64 * h as f64 / rows.max(1) as f64 * 4.0 / 3.0
+        })
         .sum();
-    Some(total as usize)
+    total as usize
 }
 
 /// Chroma sampling of a loupe view: the albedo's colour varies more slowly than its
@@ -111,11 +163,19 @@ fn chroma(view: &str) -> SamplingFactor {
     }
 }
 
-/// The loupe's sources: every `step`-th pixel, JPEG at `quality`.
+/// One band of a loupe view: its first row and its JPEG.
+struct LoupeBand {
+    view: String,
+    row: usize,
+    bytes: Vec<u8>,
+}
+
+/// The loupe's sources: every `step`-th pixel, JPEG bands at `quality`, view by view, top
+/// to bottom.
 struct Loupe {
     step: usize,
     quality: u8,
-    views: Vec<(String, Vec<u8>)>,
+    views: Vec<LoupeBand>,
 }
 
 /// The loupe's `<img>` tags, with its sampling step and JPEG quality (1 and 0 without maps).
@@ -127,10 +187,12 @@ pub(super) fn loupe_parts(maps: &FullMaps, budget: usize) -> (usize, u8, String)
     let tags = loupe
         .views
         .iter()
-        .map(|(name, bytes)| {
+        .map(|band| {
             format!(
-                "<img class=\"loupe-src\" id=\"loupe-{name}\" alt=\"{name} at full resolution\" src=\"{}\">",
-                images::data_uri("image/jpeg", bytes)
+                "<img class=\"loupe-src\" data-view=\"{view}\" data-row=\"{row}\" alt=\"{view} at full resolution, rows from {row}\" src=\"{}\">",
+                images::data_uri("image/jpeg", &band.bytes),
+                view = band.view,
+                row = band.row,
             )
         })
         .collect();
@@ -163,22 +225,60 @@ mod tests {
     #[test]
     fn the_sampled_size_predicts_the_whole_jpeg() {
         let sources = vec![("albedo", weave(900, 1100)), ("normal", weave(900, 1100))];
+        let bands = band_ids(&sources);
+        let sample = sample_bands(&bands, &sources);
+        // Every eighth of the 35 bands of each view: 0, 8, 16, 24 and 32.
+        assert_eq!(sample.len(), 2 * 5);
         for quality in LOUPE_QUALITIES {
-            let predicted = predicted_bytes(&sources, quality).expect("large enough to sample");
-            let actual: usize = sources
+            let predicted = predicted_bytes(&sources, &encode_bands(&sources, &sample, quality));
+            let actual: usize = encode_bands(&sources, &bands, quality)
                 .iter()
-                .map(|(name, img)| images::jpeg_bytes(img, quality, chroma(name)).len() * 4 / 3)
+                .map(|(_, jpeg)| jpeg.len() * 4 / 3)
                 .sum();
             let off = predicted as f64 / actual as f64 - 1.0;
-            // The sample is an eighth of the rows of an image of uniform texture: its bytes
-            // per row are the whole's up to headers and tables (a few hundred bytes) and the
-            // texture's row-to-row variation, well under the margin a skip needs.
+            // The sample is an eighth of the bands of an image of uniform texture: its bytes
+            // per row are the whole's up to the last band's short height and the texture's
+            // row-to-row variation, well under the margin a skip needs.
             assert!(
                 off.abs() < PREDICTION_MARGIN - 1.0,
                 "q{quality}: predicted {predicted}, actual {actual}"
             );
         }
-        // Too few rows to sample: encoded whole.
-        assert!(predicted_bytes(&[("albedo", weave(64, 64))], 88).is_none());
+        // Too few bands to sample: encoded whole.
+        let small = vec![("albedo", weave(64, 64))];
+        assert!(sample_bands(&band_ids(&small), &small).is_empty());
+    }
+
+    #[test]
+    fn the_bands_cover_each_view_once_in_order() {
+        let sources = vec![("albedo", weave(40, 100)), ("normal", weave(40, 100))];
+        let bands = encode_bands(&sources, &band_ids(&sources), 88);
+        // 100 rows: bands from rows 0, 32, 64 and 96 (4 rows), albedo then normal.
+        assert_eq!(bands.len(), 8);
+        for (k, ((view, row), jpeg)) in bands.iter().enumerate() {
+            assert_eq!((*view, *row), (k / 4, (k % 4) * LOUPE_BAND_ROWS));
+            let decoded = image::load_from_memory(jpeg).unwrap().into_rgb8();
+            let rows = if k % 4 == 3 {
+                4
+            } else {
+                LOUPE_BAND_ROWS as u32
+            };
+            assert_eq!((decoded.width(), decoded.height()), (40, rows));
+            // The band's own rows: its JPEG is near them, not near the view's top rows.
+            let source = &sources[*view].1;
+            let error = |from: u32| -> f64 {
+                let mut sum = 0.0;
+                for (x, y, px) in decoded.enumerate_pixels() {
+                    let want = source.get_pixel(x, from + y);
+                    sum += (0..3)
+                        .map(|c| (px[c] as f64 - want[c] as f64).abs())
+                        .sum::<f64>();
+                }
+                sum / (3 * decoded.width() * decoded.height()) as f64
+            };
+            if *row > 0 {
+                assert!(error(*row as u32) < error(0), "band at row {row}");
+            }
+        }
     }
 }

@@ -7,8 +7,53 @@
   var $ = function (id) { return document.getElementById(id); };
 
   // ---- loupe and zoom -------------------------------------------------------------------
+  // A view's loupe source arrives as JPEG bands of rows (encoded side by side); they are
+  // drawn once, unscaled at whole-pixel rows, into one canvas, so the loupe's magnified draw
+  // has no seams between bands. Null until every band has decoded.
+  var loupeCanvases = {};
   function loupeSource(name) {
-    return $("loupe-" + name);
+    if (loupeCanvases[name]) return loupeCanvases[name];
+    var bands = Array.prototype.slice.call(document.querySelectorAll("img.loupe-src"))
+      .filter(function (img) { return img.getAttribute("data-view") === name; });
+    if (!bands.length || bands.some(function (img) { return !img.complete || !img.naturalWidth; })) return null;
+    var canvas = document.createElement("canvas");
+    canvas.width = bands[0].naturalWidth;
+    canvas.height = bands.reduce(function (rows, img) {
+      return Math.max(rows, +img.getAttribute("data-row") + img.naturalHeight);
+    }, 0);
+    var ctx = canvas.getContext("2d");
+    bands.forEach(function (img) { ctx.drawImage(img, 0, +img.getAttribute("data-row")); });
+    loupeCanvases[name] = canvas;
+    return canvas;
+  }
+
+  // What the self-test reports of a view's loupe source: its size, its black pixels (a band
+  // missing or misplaced leaves black rows), its bands, and the largest difference between
+  // each band drawn alone and its rows in the whole (one band drawn over another's rows).
+  function loupeCheck(name) {
+    var canvas = loupeSource(name);
+    if (!canvas) return null;
+    var w = canvas.width, h = canvas.height;
+    var whole = canvas.getContext("2d").getImageData(0, 0, w, h).data;
+    var out = { width: w, height: h, black_pixels: 0, bands: 0, band_max_difference: 0 };
+    for (var i = 0; i < whole.length; i += 4) {
+      if (whole[i] + whole[i + 1] + whole[i + 2] === 0) out.black_pixels++;
+    }
+    document.querySelectorAll("img.loupe-src").forEach(function (img) {
+      if (img.getAttribute("data-view") !== name) return;
+      var row = +img.getAttribute("data-row"), alone = document.createElement("canvas");
+      alone.width = img.naturalWidth;
+      alone.height = img.naturalHeight;
+      var actx = alone.getContext("2d");
+      actx.drawImage(img, 0, 0);
+      var band = actx.getImageData(0, 0, alone.width, alone.height).data;
+      for (var k = 0; k < band.length; k++) {
+        var d = Math.abs(band[k] - whole[row * w * 4 + k]);
+        if (d > out.band_max_difference) out.band_max_difference = d;
+      }
+      out.bands++;
+    });
+    return out;
   }
 
   function setupLoupe(name) {
@@ -20,10 +65,10 @@
     view.addEventListener("mouseleave", function () { loupe.hidden = true; });
     view.addEventListener("mousemove", function (e) {
       var src = loupeSource(name);
-      if (!src || !src.complete || !src.naturalWidth) return;
+      if (!src) return;
       var rect = view.getBoundingClientRect();
-      var fx = (e.clientX - rect.left) / rect.width * src.naturalWidth;
-      var fy = (e.clientY - rect.top) / rect.height * src.naturalHeight;
+      var fx = (e.clientX - rect.left) / rect.width * src.width;
+      var fy = (e.clientY - rect.top) / rect.height * src.height;
       var span = 60 / data.loupe_step;
       ctx.imageSmoothingEnabled = false;
       ctx.fillStyle = "#000";
@@ -332,6 +377,7 @@
     out.images = imgs.length;
     out.images_failed = imgs.filter(function (img) { return !decodes(img); }).map(function (img) { return img.id || img.alt; });
     out.decode_ms = performance.now() - t0;
+    out.loupe = { albedo: loupeCheck("albedo"), normal: loupeCheck("normal") };
     (function () {
       if (gl) {
         if (p.light) state.light = p.light.split(",").map(Number);
