@@ -325,7 +325,7 @@ fn par_image_rows<S>(
     RgbImage::from_raw(width as u32, height as u32, data).expect("the buffer fits the size")
 }
 
-fn byte(v: f32) -> u8 {
+pub(super) fn byte(v: f32) -> u8 {
     crate::math::round_non_negative(v.clamp(0.0, 1.0) * 255.0) as u8
 }
 
@@ -505,60 +505,6 @@ pub fn viridis_legend() -> RgbImage {
     RgbImage::from_fn(256, 12, |x, _| image::Rgb(viridis(x as f32 / 255.0)))
 }
 
-/// Full-resolution 8-bit views for the loupe: sRGB albedo and the OpenGL normal encoding.
-pub fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<RgbImage>) {
-    let (w, h) = (maps.width.div_ceil(step), maps.height.div_ceil(step));
-    rayon::join(
-        || {
-            maps.albedo.as_ref().map(|a| {
-                // The table once, not per sample (`linear_to_srgb8` looks it up each call).
-                let table = crate::maps::srgb::srgb8();
-                let to_byte = |v| table.code(v) as u8;
-                sampled_view(a.each_ref(), maps.width, (w, h, step), to_byte)
-            })
-        },
-        || {
-            maps.normal.as_ref().map(|n| {
-                let planes = n.each_ref().map(|p| &**p);
-                sampled_view(planes, maps.width, (w, h, step), |v| byte(v * 0.5 + 0.5))
-            })
-        },
-    )
-}
-
-/// Every `step`-th pixel of `planes` (rows `width` long) as a `w x h` image, each value through
-/// `to_byte`. Generic in `to_byte` so that the conversion inlines: at 16 MP through a `dyn Fn`
-/// it was a call per value, 48 million of them. Row by row over the planes' row slices, so
-/// that the inner loop indexes nothing it has to bounds-check per value.
-fn sampled_view(
-    planes: [&Plane; 3],
-    width: usize,
-    (w, h, step): (usize, usize, usize),
-    to_byte: impl Fn(f32) -> u8 + Sync,
-) -> RgbImage {
-    let mut data = vec![0u8; w * h * 3];
-    if w > 0 {
-        data.par_chunks_mut(w * 3).enumerate().for_each(|(y, out)| {
-            let start = y * step * width;
-            let [r, g, b] = planes.map(|p| &p.data[start..start + width]);
-            let rgb = r.iter().zip(g).zip(b);
-            let mut put = |(px, ((&r, &g), &b)): (&mut [u8], _)| {
-                px.copy_from_slice(&[to_byte(r), to_byte(g), to_byte(b)]);
-            };
-            // Every pixel (the loupe's first try, 16 MP at full resolution) without `step_by`,
-            // whose iterator the conversion loop does not vectorise through.
-            if step == 1 {
-                out.chunks_exact_mut(3).zip(rgb).for_each(&mut put);
-            } else {
-                out.chunks_exact_mut(3)
-                    .zip(rgb.step_by(step))
-                    .for_each(&mut put);
-            }
-        });
-    }
-    RgbImage::from_raw(w as u32, h as u32, data).expect("the buffer fits the size")
-}
-
 /// PNG bytes of an 8-bit RGB image.
 pub fn png_bytes(img: &RgbImage) -> Vec<u8> {
     let mut out = Vec::new();
@@ -613,57 +559,6 @@ pub fn data_uri(mime: &str, bytes: &[u8]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// The loupe's views at every pixel and at every 3rd pixel hold, pixel for pixel, what
-    /// the page says they hold: the albedo's sRGB code by direct computation and the normal's
-    /// `round((n * 0.5 + 0.5) * 255)`.
-    #[test]
-    fn full_views_hold_each_sampled_pixel_converted() {
-        let (w, h) = (37, 11);
-        let mut state = 7u32;
-        let mut plane = |lo: f32, hi: f32| {
-            let data = (0..w * h)
-                .map(|_| {
-                    state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-                    lo + (hi - lo) * (state >> 8) as f32 / (1u32 << 24) as f32
-                })
-                .collect();
-            Plane::from_vec(w, h, data).unwrap()
-        };
-        let albedo = [plane(-0.1, 1.1), plane(0.0, 1.0), plane(0.0, 0.01)];
-        let normal = [plane(-1.0, 1.0), plane(-1.0, 1.0), plane(0.0, 1.0)].map(Cow::Owned);
-        let maps = FullMaps {
-            width: w,
-            height: h,
-            albedo: Some(albedo.clone()),
-            normal: Some(normal.clone()),
-            confidence: None,
-            missing: Vec::new(),
-        };
-        for step in [1, 3] {
-            let (a, n) = full_views(&maps, step);
-            let (a, n) = (a.unwrap(), n.unwrap());
-            assert_eq!(
-                a.dimensions(),
-                (w.div_ceil(step) as u32, h.div_ceil(step) as u32)
-            );
-            for (x, y, px) in a.enumerate_pixels() {
-                let i = y as usize * step * w + x as usize * step;
-                let want = albedo
-                    .each_ref()
-                    .map(|p| crate::maps::srgb::srgb8_direct(p.data[i]) as u8);
-                assert_eq!(px.0, want, "albedo at ({x}, {y}), step {step}");
-                let want = normal
-                    .each_ref()
-                    .map(|p| ((p.data[i] * 0.5 + 0.5).clamp(0.0, 1.0) * 255.0).round() as u8);
-                assert_eq!(
-                    n.get_pixel(x, y).0,
-                    want,
-                    "normal at ({x}, {y}), step {step}"
-                );
-            }
-        }
-    }
 
     #[test]
     fn byte_rounds_as_f32_round_does() {
