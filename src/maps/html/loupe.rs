@@ -201,7 +201,7 @@ pub(super) fn loupe_parts(maps: &FullMaps, budget: usize) -> (usize, u8, String)
 }
 
 /// Full-resolution 8-bit views for the loupe: sRGB albedo and the OpenGL normal encoding.
-pub fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<RgbImage>) {
+fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<RgbImage>) {
     let (w, h) = (maps.width.div_ceil(step), maps.height.div_ceil(step));
     rayon::join(
         || {

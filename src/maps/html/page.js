@@ -11,18 +11,23 @@
   // drawn once, unscaled at whole-pixel rows, into one canvas, so the loupe's magnified draw
   // has no seams between bands. Null until every band has decoded.
   var loupeCanvases = {};
+
+  // A view's bands, each with its first row.
+  function loupeBands(name) {
+    return Array.prototype.slice.call(document.querySelectorAll("img.loupe-src"))
+      .filter(function (img) { return img.getAttribute("data-view") === name; })
+      .map(function (img) { return { img: img, row: +img.getAttribute("data-row") }; });
+  }
+
   function loupeSource(name) {
     if (loupeCanvases[name]) return loupeCanvases[name];
-    var bands = Array.prototype.slice.call(document.querySelectorAll("img.loupe-src"))
-      .filter(function (img) { return img.getAttribute("data-view") === name; });
-    if (!bands.length || bands.some(function (img) { return !img.complete || !img.naturalWidth; })) return null;
+    var bands = loupeBands(name);
+    if (!bands.length || bands.some(function (b) { return !b.img.complete || !b.img.naturalWidth; })) return null;
     var canvas = document.createElement("canvas");
-    canvas.width = bands[0].naturalWidth;
-    canvas.height = bands.reduce(function (rows, img) {
-      return Math.max(rows, +img.getAttribute("data-row") + img.naturalHeight);
-    }, 0);
+    canvas.width = bands[0].img.naturalWidth;
+    canvas.height = bands.reduce(function (rows, b) { return Math.max(rows, b.row + b.img.naturalHeight); }, 0);
     var ctx = canvas.getContext("2d");
-    bands.forEach(function (img) { ctx.drawImage(img, 0, +img.getAttribute("data-row")); });
+    bands.forEach(function (b) { ctx.drawImage(b.img, 0, b.row); });
     loupeCanvases[name] = canvas;
     return canvas;
   }
@@ -39,16 +44,15 @@
     for (var i = 0; i < whole.length; i += 4) {
       if (whole[i] + whole[i + 1] + whole[i + 2] === 0) out.black_pixels++;
     }
-    document.querySelectorAll("img.loupe-src").forEach(function (img) {
-      if (img.getAttribute("data-view") !== name) return;
-      var row = +img.getAttribute("data-row"), alone = document.createElement("canvas");
-      alone.width = img.naturalWidth;
-      alone.height = img.naturalHeight;
+    loupeBands(name).forEach(function (b) {
+      var alone = document.createElement("canvas");
+      alone.width = b.img.naturalWidth;
+      alone.height = b.img.naturalHeight;
       var actx = alone.getContext("2d");
-      actx.drawImage(img, 0, 0);
+      actx.drawImage(b.img, 0, 0);
       var band = actx.getImageData(0, 0, alone.width, alone.height).data;
       for (var k = 0; k < band.length; k++) {
-        var d = Math.abs(band[k] - whole[row * w * 4 + k]);
+        var d = Math.abs(band[k] - whole[b.row * w * 4 + k]);
         if (d > out.band_max_difference) out.band_max_difference = d;
       }
       out.bands++;
