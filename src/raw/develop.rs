@@ -16,6 +16,7 @@ use super::pass::{self, LinearPass, SampleCounts};
 use super::shading::ShadingField;
 use super::stack::develop_stack;
 use crate::error::{Error, Result};
+use crate::math::select::select;
 use crate::plane::LightFrame;
 use crate::timing::{Busy, StageClock};
 
@@ -474,24 +475,19 @@ pub fn below_black_floor(dark: &DecodedFrame) -> Option<f32> {
 }
 
 /// The median of `values` and the standard deviation of Gaussian noise about it, from the
-/// median absolute deviation.
+/// median absolute deviation; non-finite values are left out. Selected on every core without
+/// a copy ([`select`]: the values `select_nth_unstable` finds in a vector of them): a 16 MP
+/// dark frame's copy and two selections on one thread took about 0.2 s in which the light
+/// frames, which wait for this floor, left the other cores idle.
 fn median_and_sigma(values: &[f32]) -> (f32, f32) {
-    if values.is_empty() {
+    let middle = |n: usize| [n / 2];
+    let finite = |i: usize| Some(values[i]).filter(|x| x.is_finite());
+    let Some(median) = select(values.len(), finite, middle).map(|s| s.at[0]) else {
         return (0.0, 0.0);
-    }
-    let mut v: Vec<f32> = values.iter().copied().filter(|x| x.is_finite()).collect();
-    if v.is_empty() {
-        return (0.0, 0.0);
-    }
-    let mid = v.len() / 2;
-    let median = *v.select_nth_unstable_by(mid, f32::total_cmp).1;
-    for x in &mut v {
-        *x = (*x - median).abs();
-    }
-    (
-        median,
-        1.4826 * *v.select_nth_unstable_by(mid, f32::total_cmp).1,
-    )
+    };
+    let deviation = |i: usize| finite(i).map(|x| (x - median).abs());
+    let mad = select(values.len(), deviation, middle).map_or(0.0, |s| s.at[0]);
+    (median, 1.4826 * mad)
 }
 
 /// How the frames of a solve were decoded and prepared, for the report.
@@ -601,5 +597,38 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("dn16") && err.contains("RAW"), "{err}");
+    }
+
+    #[test]
+    fn median_and_sigma_are_the_selections_in_a_vector_of_the_finite_values() {
+        // Dark-frame-like samples: read noise about a level, hot pixels, NaN and infinities
+        // (left out), over more than one block of the selection.
+        let mut values: Vec<f32> = (0..(1 << 20) + 4097)
+            .map(|i: usize| match i % 1009 {
+                0 => f32::NAN,
+                1 => f32::INFINITY,
+                2 => 0.9,
+                _ => 0.0015 + ((i * 7919) % 1_048_573) as f32 * 5e-10,
+            })
+            .collect();
+        // An even count, so that the median is the upper of the middle two, as the floor has
+        // always taken it.
+        if values.iter().filter(|x| x.is_finite()).count() % 2 == 1 {
+            values.push(0.0031);
+        }
+        let mut v: Vec<f32> = values.iter().copied().filter(|x| x.is_finite()).collect();
+        let mid = v.len() / 2;
+        let median = *v.select_nth_unstable_by(mid, f32::total_cmp).1;
+        v.iter_mut().for_each(|x| *x = (*x - median).abs());
+        let sigma = 1.4826 * *v.select_nth_unstable_by(mid, f32::total_cmp).1;
+        let got = median_and_sigma(&values);
+        assert_eq!(
+            (got.0.to_bits(), got.1.to_bits()),
+            (median.to_bits(), sigma.to_bits()),
+            "{got:?} against ({median}, {sigma})"
+        );
+        assert_eq!(median_and_sigma(&[]), (0.0, 0.0));
+        assert_eq!(median_and_sigma(&[f32::NAN, f32::NEG_INFINITY]), (0.0, 0.0));
+        assert_eq!(median_and_sigma(&[3.0]), (3.0, 0.0));
     }
 }
