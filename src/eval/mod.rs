@@ -59,8 +59,8 @@ impl Stats {
         Stats::by_selection(values.len(), |i| Some(values[i]))
     }
 
-    /// The statistics of the values `value(i)` gives for `i` in `0..n`, computed twice and
-    /// never stored ([`select`]): the order statistics [`Stats::of`] finds in a vector of
+    /// The statistics of the values `value(i)` gives for `i` in `0..n`, never stored
+    /// ([`select`]): the order statistics [`Stats::of`] finds in a vector of
     /// them, the mean summed block by block.
     fn by_selection<T: Orderable>(n: usize, value: impl Fn(usize) -> Option<T> + Sync) -> Stats {
         let positions = |n: usize| [quantile_position(n, 0.5), quantile_position(n, 0.95), n - 1];

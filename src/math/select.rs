@@ -2,7 +2,7 @@
 //! them: the percentiles of a 16 MP map's per-pixel figures (the report page's colour scales,
 //! the errors against a synthetic set's truth). Selecting in a vector of the values costs a
 //! vector of them (190 MB for 48 M albedo errors, all of it fresh memory) and a selection pass
-//! over all of it on one core; here the values are computed twice instead, and counted.
+//! over all of it on one core; here the values are counted and a few computed again instead.
 //!
 //! How: each value (`f32` or `f64`) has an unsigned key in `total_cmp`'s order. The first pass
 //! counts the values by their key's top 16 bits (a histogram, block by block in parallel); the
@@ -84,7 +84,8 @@ pub struct Selected<T, const K: usize> {
 
 /// The values that `value(i)` gives for `i` in `0..n`, counted and summed, and those at the
 /// ascending sorted positions (by `total_cmp`) that `positions` names given the count;
-/// `None` when there is no value. `value` is called twice per index, from several threads.
+/// `None` when there is no value. `value` is called once per index, and again for the indices
+/// whose values fall in the buckets of the wanted positions, from several threads.
 ///
 /// # Panics
 /// When `positions` names a position at or past the count.
