@@ -38,6 +38,7 @@ test-rust:
 lint:
 	$(CARGO) fmt --check
 	$(CARGO) clippy --release --all-targets -- -D warnings
+	RUSTDOCFLAGS="-D warnings" $(CARGO) doc --no-deps
 
 # Screenshots of report.html for the demo and a DiLiGenT-layout set, into docs/report/.
 report-screenshots:

@@ -24,7 +24,7 @@ pub const COUNTING: bool = cfg!(feature = "count-alloc");
 /// Allocations at least this large are backed by transparent huge pages.
 const HUGE_PAGE_MIN: usize = 4 << 20;
 
-/// The system allocator, with every allocation of at least [`HUGE_PAGE_MIN`] bytes advised to
+/// The system allocator, with every allocation of at least `HUGE_PAGE_MIN` bytes advised to
 /// be backed by transparent huge pages ([`huge_pages`]).
 pub struct LargePageAlloc;
 

@@ -33,7 +33,7 @@ pub struct AtomicFile {
 /// Where an [`AtomicFile`]'s bytes go: through a buffer and the page cache, or past the page
 /// cache ([`DirectFile`], for large files).
 pub enum FileWriter {
-    /// Through a buffer of [`ATOMIC_FILE_BUFFER`] bytes and the page cache.
+    /// Through a buffer of `ATOMIC_FILE_BUFFER` bytes and the page cache.
     Buffered(std::io::BufWriter<fs::File>),
     /// Past the page cache.
     Direct(DirectFile),

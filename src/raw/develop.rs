@@ -463,7 +463,7 @@ pub fn check_plausible(frames: &[(String, SampleCounts)]) -> std::result::Result
 }
 
 /// The linear level under which a light frame's sample is impossibly far below black:
-/// [`BELOW_BLACK_SIGMAS`] times the dark frame's read noise (its median absolute deviation,
+/// `BELOW_BLACK_SIGMAS` times the dark frame's read noise (its median absolute deviation,
 /// so a few hot pixels do not inflate it) below its median. `None` for a dark frame with no
 /// spread (or not a RAW one): the below-black test then does not run.
 pub fn below_black_floor(dark: &DecodedFrame) -> Option<f32> {

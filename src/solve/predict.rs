@@ -107,7 +107,7 @@ impl NoiseModel {
 
     /// The test that leaves a dark light (attached or cast shadow) out of a pixel's fit, at
     /// `sigmas` deviations of the noise floor of the luminance (`weights`) or, where the
-    /// channels share one CFA sample, of that sample (see [`DarkTest`]).
+    /// channels share one CFA sample, of that sample (see `DarkTest`).
     pub fn dark_test(&self, weights: &[f64; 3], sigmas: f64) -> DarkTest {
         DarkTest {
             weights: *weights,
