@@ -10,7 +10,10 @@ runs, round after round so that every configuration sees the same machine load:
   peer        `peer_rawpy.py DNG` (half resolution, one normal PNG), when the Python given by
               --python imports rawpy and numpy; skipped with a note otherwise
 Each configuration's figure is the median whole-process wall time over the rounds; its stage
-table (report.json "stages", which adds up to the solve's total) is the median run's.
+table (report.json "stages", which adds up to the solve's total) is the median run's. Each
+psscan configuration is also given as a multiple of its decode stage (the frames' decode alone,
+the floor the rest of the command is measured against), and issue 18's three time targets are
+printed as met or not met.
 
 Usage: bench_e2e.py [--psscan BIN] [--python PY] [--width W --height H] [--rounds N]
                     [--work DIR] [--keep] [--json] [--dng SET] [--dn16 SET]
@@ -100,6 +103,42 @@ def table(results):
     return "\n".join(lines)
 
 
+# The stage that decodes a configuration's frames: the floor the issue names ("decoding the
+# frames alone"), which the rest of the command is measured against.
+DECODE_STAGES = {"dng full": "decode", "dng half": "decode", "dn16 full": "decode + linearize"}
+
+
+def stage_seconds(result, stage):
+    return next((row["seconds"] for row in result["stages"] if row["stage"] == stage), None)
+
+
+def targets(results):
+    """Issue 18's targets, each with the measured figure and whether it is met (None where a
+    figure is missing, e.g. the peer was skipped)."""
+    peer_wall = results.get("peer (half)", {}).get("wall_s")
+    full = results["dng full"]["wall_s"]
+    speedup = peer_wall / full if peer_wall else None
+    return [
+        {"target": "dng full at least 3x the peer's speed", "figure": speedup,
+         "unit": "x", "met": None if speedup is None else speedup >= 3.0},
+        {"target": "dng half under 2 s wall", "figure": results["dng half"]["wall_s"],
+         "unit": "s", "met": results["dng half"]["wall_s"] < 2.0},
+        {"target": "dn16 full under 5 s wall", "figure": results["dn16 full"]["wall_s"],
+         "unit": "s", "met": results["dn16 full"]["wall_s"] < 5.0},
+    ]
+
+
+def floor_lines(results):
+    lines = []
+    for name, stage in DECODE_STAGES.items():
+        decode = stage_seconds(results[name], stage)
+        if decode:
+            wall = results[name]["wall_s"]
+            lines.append(f"{name}: {wall:.2f} s wall, {wall / decode:.2f}x its '{stage}' "
+                         f"stage ({decode:.2f} s)")
+    return lines
+
+
 def main():
     root = os.path.dirname(HERE)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -148,9 +187,12 @@ def main():
                 print(f"round {k + 1}/{args.rounds} {name}: {runs[name][-1]['wall_s']:.2f} s",
                       file=log)
         results = {name: median_run(r) for name, r in runs.items()}
+        for name, stage in DECODE_STAGES.items():
+            results[name]["decode_s"] = stage_seconds(results[name], stage)
         if args.json:
             print(json.dumps({"width": args.width, "height": args.height,
-                              "rounds": args.rounds, "note": note, "results": results},
+                              "rounds": args.rounds, "note": note, "results": results,
+                              "targets": targets(results)},
                              indent=2))
         else:
             print(table(results))
@@ -158,6 +200,12 @@ def main():
                 p = results["peer (half)"]["wall_s"]
                 for name in ("dng full", "dng half"):
                     print(f"{name}: {p / results[name]['wall_s']:.2f}x the peer's speed")
+            for line in floor_lines(results):
+                print(line)
+            for t in targets(results):
+                verdict = {True: "met", False: "not met", None: "not measured"}[t["met"]]
+                figure = "" if t["figure"] is None else f" ({t['figure']:.2f} {t['unit']})"
+                print(f"target: {t['target']}: {verdict}{figure}")
             if note:
                 print(note)
     finally:
