@@ -6,6 +6,11 @@ pub mod select;
 
 use nalgebra::Vector3;
 
+/// Consistency factor of the median absolute deviation for a normal distribution: this many
+/// MADs are one standard deviation of Gaussian noise, a scale that under half of the values
+/// being outliers does not move.
+pub const MAD_TO_SIGMA: f64 = 1.4826;
+
 /// Angle between two vectors in degrees, accurate for tiny angles (atan2 of cross and dot:
 /// `acos` of the dot product loses all precision below about 1e-4 degrees).
 pub fn angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {

@@ -16,7 +16,7 @@ use super::pass::{self, LinearPass, SampleCounts};
 use super::shading::ShadingField;
 use super::stack::develop_stack;
 use crate::error::{Error, Result};
-use crate::math::select::select;
+use crate::math::{select::select, MAD_TO_SIGMA};
 use crate::plane::LightFrame;
 use crate::timing::{Busy, StageClock};
 
@@ -487,7 +487,7 @@ fn median_and_sigma(values: &[f32]) -> (f32, f32) {
     };
     let deviation = |i: usize| finite(i).map(|x| (x - median).abs());
     let mad = select(values.len(), deviation, middle).map_or(0.0, |s| s.at[0]);
-    (median, 1.4826 * mad)
+    (median, MAD_TO_SIGMA as f32 * mad)
 }
 
 /// How the frames of a solve were decoded and prepared, for the report.

@@ -134,8 +134,8 @@ fn check_dark(mosaic: &Mosaic, dark: Option<&LinearMosaic>) -> Result<()> {
 
 impl Mosaic {
     /// The samples as linear values (per-site black subtracted, 1.0 at the white level) with
-    /// their saturation flags: this module's `linearize` with nothing else to do. (Defined here, beside
-    /// the pass that computes it, so `mosaic` need not import this module.)
+    /// their saturation flags: this module's `linearize` with nothing else to do. (Defined
+    /// here, beside the pass that computes it, so `mosaic` need not import this module.)
     pub fn linearize(&self) -> Result<LinearMosaic> {
         Ok(linearize(self, LinearPass::default())?.0)
     }

@@ -23,6 +23,7 @@ use super::lights::{Illumination, LightModel, LightSource};
 use super::predict::NoiseModel;
 use super::LUMINANCE_WEIGHTS;
 use crate::error::Result;
+use crate::math::MAD_TO_SIGMA;
 use crate::plane::{Frames, Mask};
 
 /// About this many pixels are sampled, whatever the frames' size: the check costs the same
@@ -318,14 +319,14 @@ fn summarise(residuals: &[Residual], n: usize) -> (Vec<FrameFigures>, usize) {
     (frames, judged)
 }
 
-/// 1.4826 times the median of `abs_residuals` (already absolute): the standard deviation of
-/// Gaussian residuals about zero, robust to under half of them being outliers.
+/// [`MAD_TO_SIGMA`] times the median of `abs_residuals` (already absolute): the standard
+/// deviation of Gaussian residuals about zero, robust to under half of them being outliers.
 fn mad_scale(abs_residuals: &mut [f32]) -> f64 {
     if abs_residuals.is_empty() {
         return 0.0;
     }
     let mid = abs_residuals.len() / 2;
-    1.4826 * *abs_residuals.select_nth_unstable_by(mid, f32::total_cmp).1 as f64
+    MAD_TO_SIGMA * *abs_residuals.select_nth_unstable_by(mid, f32::total_cmp).1 as f64
 }
 
 fn median(values: &mut [f64]) -> f64 {

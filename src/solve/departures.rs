@@ -16,9 +16,7 @@ use nalgebra::Vector3;
 
 use super::measure::{fit_normal_equations, Fit, Gram, Measurement};
 use super::PixelFit;
-
-/// Consistency factor of the MAD for a normal distribution.
-const MAD_TO_SIGMA: f64 = 1.4826;
+use crate::math::MAD_TO_SIGMA;
 
 /// Tuning of the data-scaled fit (fixed from the method, not fitted to any data set).
 #[derive(Clone, Copy, Debug)]
