@@ -81,6 +81,10 @@ def median_run(runs):
     return dict(chosen, wall_s=statistics.median(walls), walls_s=walls)
 
 
+def stage_seconds(result, stage):
+    return next((row["seconds"] for row in result["stages"] if row["stage"] == stage), None)
+
+
 def table(results):
     names = list(results)
     stages = []
@@ -93,7 +97,7 @@ def table(results):
     for stage in stages:
         cells = []
         for r in results.values():
-            v = next((row["seconds"] for row in r["stages"] if row["stage"] == stage), None)
+            v = stage_seconds(r, stage)
             cells.append(f"{v:12.3f}" if v is not None else f"{'':>12}")
         lines.append(f"{stage:<{width}}" + "".join(cells))
     for key, label in [("total_s", "total (in-process)"), ("wall_s", "wall (whole process)")]:
@@ -106,10 +110,6 @@ def table(results):
 # The stage that decodes a configuration's frames: the floor the issue names ("decoding the
 # frames alone"), which the rest of the command is measured against.
 DECODE_STAGES = {"dng full": "decode", "dng half": "decode", "dn16 full": "decode + linearize"}
-
-
-def stage_seconds(result, stage):
-    return next((row["seconds"] for row in result["stages"] if row["stage"] == stage), None)
 
 
 def targets(results):
@@ -129,9 +129,10 @@ def targets(results):
 
 
 def floor_lines(results):
+    """Each psscan configuration's wall time against its decode stage (`decode_s`)."""
     lines = []
     for name, stage in DECODE_STAGES.items():
-        decode = stage_seconds(results[name], stage)
+        decode = results[name].get("decode_s")
         if decode:
             wall = results[name]["wall_s"]
             lines.append(f"{name}: {wall:.2f} s wall, {wall / decode:.2f}x its '{stage}' "
