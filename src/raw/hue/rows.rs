@@ -22,18 +22,25 @@ pub(super) struct SplitRow {
 impl SplitRow {
     /// Fills this row from `sites` (one row of them) and their `logs`.
     pub(super) fn fill(&mut self, sites: &[SiteFit], logs: &[f32]) {
+        assert_eq!(sites.len(), logs.len(), "a log per site");
         for parity in 0..2 {
-            let columns = || sites.iter().zip(logs).skip(parity).step_by(2);
-            self.albedo[parity].clear();
-            self.albedo[parity].extend(columns().map(|(s, _)| s.albedo));
-            self.log[parity].clear();
-            self.log[parity].extend(columns().map(|(_, &l)| l));
+            // Each field from its own slice: stepping a zip of the two (`zip().skip()
+            // .step_by(2)`) advanced it one item at a time, a tenth of the demosaic's CPU.
+            let sites = sites.get(parity..).unwrap_or_default();
+            let logs = logs.get(parity..).unwrap_or_default();
+            fill_every_other(&mut self.albedo[parity], sites, |s| s.albedo);
+            fill_every_other(&mut self.log[parity], logs, |&l| l);
             for axis in 0..3 {
-                self.normal[parity][axis].clear();
-                self.normal[parity][axis].extend(columns().map(|(s, _)| s.normal[axis]));
+                fill_every_other(&mut self.normal[parity][axis], sites, |s| s.normal[axis]);
             }
         }
     }
+}
+
+/// `out` becomes `field` of every other item of `items`, from the first.
+fn fill_every_other<T>(out: &mut Vec<f32>, items: &[T], field: impl Fn(&T) -> f32) {
+    out.clear();
+    out.extend(items.iter().step_by(2).map(field));
 }
 
 /// Per neighbour direction, each pixel's candidate: the continuity `change`, the `ratio` the
