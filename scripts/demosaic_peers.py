@@ -19,7 +19,13 @@ patch of the pixel's material (its true chromaticity: its thread, or a hole in t
 holds no CFA site of that channel, so no sample anywhere in the patch measured it; any
 demosaic then takes it from another material. Needs scipy too.
 
-Usage: demosaic_peers.py SET [SOLVE_OUT]   (SET written by `psscan synth`, any encoding)
+With a half-resolution solve's output folder as well (`psscan solve SET --resolution half`),
+it scores the issue's other suggestion, the half-resolution chroma: each pixel's own channel
+(exact, as for the peers) times the colour ratios of the half-resolution albedo, bilinearly
+upsampled to the pixel (the 2x2 cell's centre is its sample position).
+
+Usage: demosaic_peers.py SET [SOLVE_OUT [HALF_OUT]]   (SET written by `psscan synth`, any
+encoding)
 """
 import sys
 import warnings
@@ -83,6 +89,29 @@ def main():
         print(f"  {name:<32} mean relative albedo error {100 * score(run()):6.2f} %")
     if len(sys.argv) > 2:
         observability(albedo, site, load(f"{sys.argv[2]}/albedo.exr"))
+    if len(sys.argv) > 3:
+        half = upsample_cells(load(f"{sys.argv[3]}/albedo.exr"), (h, w))
+        print(f"  psscan's half-resolution colour ratios, bilinear: mean relative albedo error "
+              f"{100 * score(half):.2f} %")
+
+
+def upsample_cells(cells, shape):
+    """Bilinear interpolation of per-2x2-cell values to every pixel of `shape`: cell `i`'s
+    value sits at pixel coordinate 2 i + 0.5; beyond the outer cell centres it is held."""
+
+    def axis(n, cells_n):
+        at = (np.arange(n) - 0.5) / 2
+        lo = np.clip(np.floor(at).astype(int), 0, cells_n - 1)
+        hi = np.clip(lo + 1, 0, cells_n - 1)
+        frac = np.clip(at - np.floor(at), 0, 1)
+        frac[at < 0] = 0
+        return lo, hi, frac
+
+    (y0, y1, fy), (x0, x1, fx) = axis(shape[0], cells.shape[0]), axis(shape[1], cells.shape[1])
+    fx = fx[None, :, None]
+    top = cells[y0][:, x0] * (1 - fx) + cells[y0][:, x1] * fx
+    bottom = cells[y1][:, x0] * (1 - fx) + cells[y1][:, x1] * fx
+    return top * (1 - fy)[:, None, None] + bottom * fy[:, None, None]
 
 
 def observability(albedo, site, solved):
