@@ -121,11 +121,25 @@ impl<T: Real> NoiseSums<T> {
         if let Some(own) = &self.own {
             // All three channels carry the own sample `v`: the luminance's relative variance
             // is `v`'s.
+            // Selects, not an index per lane, and every lane's quotient before the selects:
+            // with the division inside the select the compiler branched around it lane by
+            // lane, and the loop did not vectorise.
+            let [r, g, b] = light.rgb;
+            let mut own_value = [zero; LANES];
+            let mut shared = [zero; LANES];
             for l in 0..LANES {
-                let v = light.rgb[own[l] as usize][l];
+                let v = if own[l] == 0 { r[l] } else { b[l] };
+                let v = if own[l] == 1 { g[l] } else { v };
                 let lum = light.lum[l];
-                let shared = lum * lum * madd::<T, FMA>(photon, v, floor) / (v * v);
-                var[l] = if v > zero { shared } else { var[l] };
+                own_value[l] = v;
+                shared[l] = lum * lum * madd::<T, FMA>(photon, v, floor) / (v * v);
+            }
+            for l in 0..LANES {
+                var[l] = if own_value[l] > zero {
+                    shared[l]
+                } else {
+                    var[l]
+                };
             }
         }
         // Only the sums asked for: a least-squares solve has no statistic to test, and the
