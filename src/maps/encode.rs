@@ -68,9 +68,22 @@ pub fn u16_to_unit(v: u16) -> f32 {
 /// Interleaved 16-bit RGB of the normal map.
 pub fn normal_rgb16(result: &SolveResult, convention: NormalConvention) -> Vec<u16> {
     let [nx, ny, nz] = &result.normal;
-    interleave(result.width, nx.len(), |i| {
-        [nx.data[i], convention.y(ny.data[i]), nz.data[i]].map(unit_to_u16)
-    })
+    let width = result.width.max(1);
+    let mut out = vec![0u16; nx.len() * 3];
+    // Row slices zipped, not a pixel index through a closure (`interleave`): the loop then
+    // has no bounds checks and vectorises.
+    out.par_chunks_mut(width * 3)
+        .zip(nx.data.par_chunks(width))
+        .zip(ny.data.par_chunks(width))
+        .zip(nz.data.par_chunks(width))
+        .for_each(|(((row, x), y), z)| {
+            for (((px, &x), &y), &z) in row.chunks_exact_mut(3).zip(x).zip(y).zip(z) {
+                px[0] = unit_to_u16(x);
+                px[1] = unit_to_u16(convention.y(y));
+                px[2] = unit_to_u16(z);
+            }
+        });
+    out
 }
 
 /// Interleaved 16-bit sRGB of the albedo, through `camera_to_srgb` when the camera's
