@@ -13,8 +13,9 @@ Peers: bilinear, Malvar (2004) and Menon (2007, DDFAPD) from colour-demosaicing,
 bilinear, VNG and edge-aware (EA) demosaics. A dev script, not part of `make test`; needs
 numpy, OpenEXR, opencv-python-headless and colour-demosaicing.
 
-With a solve's output folder as well, it splits psscan's own albedo error by whether a
-pixel's channel is observable at all: a channel is unobservable at a pixel when the connected
+With a solve's output folder as well, it splits psscan's own albedo error by material (each
+true chromaticity: its share of the pixels and of the error sum, and its largest patch) and by
+whether a pixel's channel is observable at all: a channel is unobservable at a pixel when the connected
 patch of the pixel's material (its true chromaticity: its thread, or a hole in the weave showing the ground)
 holds no CFA site of that channel, so no sample anywhere in the patch measured it; any
 demosaic then takes it from another material. Needs scipy too.
@@ -125,6 +126,30 @@ def observability(albedo, site, solved):
           f"pixel-channels, {100 * error[blind].sum() / total:.0f} % of the error sum "
           f"(their mean error {100 * error[blind].mean():.0f} %)")
     print(f"    over the observable ones the mean is {100 * error[observable].mean():.2f} %")
+    by_material(albedo, colour_id, error)
+
+
+def by_material(albedo, colour_id, error):
+    """psscan's albedo error split by material (one true chromaticity): a material seen only
+    through one- and two-pixel holes has channels no sample of it measured, and its share of
+    the error shows how much of the mean any local demosaic can win back."""
+    from scipy.ndimage import label
+
+    total = error.sum()
+    print("    by material (true albedo, its pixels' share of the image, its mean error, its "
+          "share of the error sum, its largest 4-connected patch):")
+    ids, counts = np.unique(colour_id, return_counts=True)
+    for cid in ids[np.argsort(-counts)]:
+        mask = colour_id == cid
+        if mask.mean() < 0.001:
+            continue
+        patches, n = label(mask)
+        largest = np.bincount(patches.ravel())[1:].max() if n else 0
+        mean_albedo = albedo[mask].mean(0)
+        print(f"      ({mean_albedo[0]:.3f}, {mean_albedo[1]:.3f}, {mean_albedo[2]:.3f}) "
+              f"{100 * mask.mean():5.1f} % of pixels, error {100 * error[mask].mean():6.2f} %, "
+              f"{100 * error[mask].sum() / total:3.0f} % of the error sum, "
+              f"largest patch {largest} px")
 
 
 if __name__ == "__main__":
