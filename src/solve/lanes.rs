@@ -247,10 +247,17 @@ fn by_column_parity<P: Copy>(x: usize, by_parity: [P; 2]) -> [P; LANES] {
     std::array::from_fn(|l| if l & 1 == 0 { even } else { odd })
 }
 
-/// Per lane of the chunk at (`x`, `y`), which of R, G, B is the lane's own CFA channel.
+/// Per lane of the chunk at (`x`, `y`), the lane's own CFA channel (0, 1, 2 for R, G, B).
+#[inline(always)]
+pub fn own_channel(pattern: [[u8; 2]; 2], (x, y): (usize, usize)) -> [u8; LANES] {
+    by_column_parity(x, pattern[y & 1])
+}
+
+/// Per lane of the chunk at (`x`, `y`), which of R, G, B is the lane's own CFA channel
+/// ([`own_channel`] as one mask per channel).
 #[inline(always)]
 pub fn own_channels(pattern: [[u8; 2]; 2], (x, y): (usize, usize)) -> [[bool; LANES]; 3] {
-    let own = by_column_parity(x, pattern[y & 1]);
+    let own = own_channel(pattern, (x, y));
     std::array::from_fn(|c| own.map(|o| o as usize == c))
 }
 

@@ -3,7 +3,9 @@
 //! statistic the adaptive screen tests and the predicted error come out of sums over the
 //! lights without a second pass.
 
-use super::lanes::{adjugate, apply, dot, madd, sandwich, vectors6, Real, LANES, SYM, V};
+use super::lanes::{
+    adjugate, apply, dot, madd, own_channel, sandwich, vectors6, Real, LANES, SYM, V,
+};
 use super::options::SolveOptions;
 use super::{SolveInput, LUMINANCE_WEIGHTS};
 
@@ -73,13 +75,7 @@ pub(super) struct NoiseSums<T> {
 impl<T: Real> NoiseSums<T> {
     #[inline(always)]
     pub(super) fn new(weighing: Weighing, (x, y): (usize, usize)) -> Self {
-        let own = weighing.noise.shared_cfa_sample.map(|pattern| {
-            let mut own = [0u8; LANES];
-            for (l, o) in own.iter_mut().enumerate() {
-                *o = pattern[y % 2][(x + l) % 2];
-            }
-            own
-        });
+        let own = (weighing.noise.shared_cfa_sample).map(|pattern| own_channel(pattern, (x, y)));
         let zero = [T::zero(); LANES];
         NoiseSums {
             weighing,
