@@ -519,24 +519,39 @@ pub fn png_bytes(img: &RgbImage) -> Vec<u8> {
     out
 }
 
-/// JPEG bytes of an 8-bit RGB image.
-pub fn jpeg_bytes(img: &RgbImage, quality: u8, chroma: SamplingFactor) -> Vec<u8> {
-    let size = (img.width() as usize, img.height() as usize);
-    jpeg_bytes_of(img.as_raw(), size, quality, chroma)
+/// The Huffman tables a JPEG is written with.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HuffmanTables {
+    /// The standard tables (JPEG's Annex K): one pass over the image's blocks.
+    Standard,
+    /// Tables fitted to the image's own symbols: a second pass over its blocks. On a 16 MP
+    /// map's 8-bit view at quality 80 (jpeg-encoder 0.7), 2.6 % (albedo) and 4.2 % (normal)
+    /// fewer bytes for 70 % more encode time.
+    Optimised,
 }
 
-/// JPEG bytes of `(width, height)` 8-bit RGB pixels, row by row.
+/// JPEG bytes of an 8-bit RGB image (optimised tables: these images are small).
+pub fn jpeg_bytes(img: &RgbImage, quality: u8, chroma: SamplingFactor) -> Vec<u8> {
+    let size = (img.width() as usize, img.height() as usize);
+    jpeg_bytes_of(
+        img.as_raw(),
+        size,
+        (quality, HuffmanTables::Optimised),
+        chroma,
+    )
+}
+
+/// JPEG bytes of `(width, height)` 8-bit RGB pixels, row by row, at `quality` with `tables`.
 pub fn jpeg_bytes_of(
     pixels: &[u8],
     (width, height): (usize, usize),
-    quality: u8,
+    (quality, tables): (u8, HuffmanTables),
     chroma: SamplingFactor,
 ) -> Vec<u8> {
     let mut out = Vec::new();
     let mut encoder = jpeg_encoder::Encoder::new(&mut out, quality);
     encoder.set_sampling_factor(chroma);
-    // Optimised Huffman tables: the same pixels in about a tenth fewer bytes.
-    encoder.set_optimized_huffman_tables(true);
+    encoder.set_optimized_huffman_tables(tables == HuffmanTables::Optimised);
     encoder
         .encode(
             pixels,
