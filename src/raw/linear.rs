@@ -59,7 +59,9 @@ impl DnImage {
 struct DnRows {
     samples: DnSamples,
     saturated: Mask,
-    white: f64,
+    /// The smallest DN at or above the white level (65536 where none is): a whole DN `v` has
+    /// reached the white level exactly when `v >= saturated_from`.
+    saturated_from: u32,
 }
 
 impl DnRows {
@@ -67,7 +69,7 @@ impl DnRows {
         DnRows {
             samples: DnSamples::new(width, height, levels.black, levels.white),
             saturated: Mask::new(width, height, false),
-            white: levels.white,
+            saturated_from: saturated_from(levels.white),
         }
     }
 
@@ -84,13 +86,48 @@ impl DnRows {
             .zip(&mut b[at.clone()])
             .zip(&mut self.saturated.data[at]);
         for ((((r, g), b), clipped), px) in outputs.zip(pixels) {
-            *clipped = px.iter().any(|&v| v as f64 >= self.white);
+            *clipped = px.iter().any(|&v| v as u32 >= self.saturated_from);
             [*r, *g, *b] = px;
+        }
+    }
+
+    /// Row `y` from a 16-bit RGB PNG row: six bytes a pixel, R, G, B big-endian (a row shorter
+    /// than the width fills what it holds). Over slices of one known length, with the white
+    /// test on integers and no early exit, the loop has no bounds check per value.
+    #[inline]
+    fn row_be_bytes(&mut self, y: usize, data: &[u8]) {
+        let w = self.samples.width;
+        let n = w.min(data.len() / 6);
+        let at = y * w..y * w + n;
+        let [r, g, b] = &mut self.samples.dn;
+        let (r, g, b) = (&mut r[at.clone()], &mut g[at.clone()], &mut b[at.clone()]);
+        let clipped = &mut self.saturated.data[at];
+        let data = &data[..6 * n];
+        let from = self.saturated_from;
+        for k in 0..n {
+            let px = &data[6 * k..6 * k + 6];
+            let v = [
+                u16::from_be_bytes([px[0], px[1]]),
+                u16::from_be_bytes([px[2], px[3]]),
+                u16::from_be_bytes([px[4], px[5]]),
+            ];
+            [r[k], g[k], b[k]] = v;
+            clipped[k] = (v[0] as u32 >= from) | (v[1] as u32 >= from) | (v[2] as u32 >= from);
         }
     }
 
     fn finish(self) -> LightFrame {
         LightFrame::from_dn(self.samples, Some(self.saturated))
+    }
+}
+
+/// The smallest whole DN at or above `white` (65536 where none is, NaN included): for every
+/// DN `v`, `v as f64 >= white` exactly when `v as u32 >= saturated_from(white)`.
+fn saturated_from(white: f64) -> u32 {
+    if white.is_nan() {
+        65536
+    } else {
+        white.ceil().clamp(0.0, 65536.0) as u32
     }
 }
 
@@ -137,15 +174,7 @@ fn png_rows_to_frame(
     let decoded = (|| {
         while let Some(row) = reader.next_row()? {
             if y < height {
-                // Six bytes a pixel: R, G, B big-endian.
-                let pixels = row.data().chunks_exact(6).map(|b| {
-                    [
-                        u16::from_be_bytes([b[0], b[1]]),
-                        u16::from_be_bytes([b[2], b[3]]),
-                        u16::from_be_bytes([b[4], b[5]]),
-                    ]
-                });
-                frame.row(y, pixels);
+                frame.row_be_bytes(y, row.data());
             }
             y += 1;
         }
@@ -305,6 +334,30 @@ mod tests {
             frame.rgb.r.data[1] < 0.0,
             "below black stays negative (noise)"
         );
+    }
+
+    #[test]
+    fn the_whole_dn_white_test_is_the_white_level_comparison() {
+        let whites = [
+            0.0,
+            -3.5,
+            1.0,
+            999.5,
+            1000.0,
+            65534.2,
+            65535.0,
+            65535.5,
+            1e9,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+        ];
+        for white in whites {
+            let from = saturated_from(white);
+            for v in [0u16, 1, 2, 999, 1000, 1001, 65534, 65535] {
+                assert_eq!(v as u32 >= from, v as f64 >= white, "DN {v}, white {white}");
+            }
+        }
     }
 
     #[test]
