@@ -390,6 +390,84 @@ mod tests {
         assert!(sample_bands(&band_ids(&small), &small).is_empty());
     }
 
+    /// Maps of a weave-like texture with noise, `w x h`, for the loupe's encodings.
+    fn textured_maps(w: usize, h: usize) -> FullMaps<'static> {
+        let mut state = 11u32;
+        let mut noise = move || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (state >> 8) as f32 / (1u32 << 24) as f32 - 0.5
+        };
+        let mut plane = |f: &dyn Fn(f32, f32) -> f32, amount: f32| {
+            let data = (0..w * h)
+                .map(|i| f((i % w) as f32, (i / w) as f32) + amount * noise())
+                .collect();
+            Plane::from_vec(w, h, data).unwrap()
+        };
+        let threads = |x: f32, y: f32| 0.3 + 0.2 * (x * 0.7).sin() * (y * 0.4).cos();
+        let albedo = [
+            plane(&threads, 0.05),
+            plane(&|x, y| 0.5 * threads(y, x), 0.05),
+            plane(&|_, _| 0.1, 0.02),
+        ];
+        let normal = [
+            plane(&|x, _| 0.4 * (x * 0.7).cos(), 0.05),
+            plane(&|_, y| 0.4 * (y * 0.4).sin(), 0.05),
+            plane(&|_, _| 0.8, 0.02),
+        ]
+        .map(Cow::Owned);
+        FullMaps {
+            width: w,
+            height: h,
+            albedo: Some(albedo),
+            normal: Some(normal),
+            confidence: None,
+            missing: Vec::new(),
+        }
+    }
+
+    /// The loupe takes the standard Huffman tables where they fit the budget, and the
+    /// optimised ones at the same quality where only those fit.
+    #[test]
+    fn optimised_tables_are_taken_only_where_the_standard_ones_miss_the_budget() {
+        let maps = textured_maps(300, 1100);
+        let (albedo, normal) = full_views(&maps, 1);
+        let sources = vec![("albedo", albedo.unwrap()), ("normal", normal.unwrap())];
+        let bands = band_ids(&sources);
+        let encode = |tables| encode_bands(&sources, &bands, (88, tables));
+        let size = |encoded: &[(BandId, Vec<u8>)]| -> usize {
+            encoded.iter().map(|(_, jpeg)| jpeg.len() * 4 / 3).sum()
+        };
+        let (standard, optimised) = (
+            encode(HuffmanTables::Standard),
+            encode(HuffmanTables::Optimised),
+        );
+        let (standard_size, optimised_size) = (size(&standard), size(&optimised));
+        assert!(
+            optimised_size < standard_size,
+            "{optimised_size} {standard_size}"
+        );
+        let bytes_of = |loupe: &Loupe| -> Vec<Vec<u8>> {
+            loupe.views.iter().map(|band| band.bytes.clone()).collect()
+        };
+        let want = |encoded: Vec<(BandId, Vec<u8>)>| -> Vec<Vec<u8>> {
+            encoded.into_iter().map(|(_, jpeg)| jpeg).collect()
+        };
+
+        let roomy = loupe_views(&maps, standard_size);
+        assert_eq!((roomy.step, roomy.quality), (1, 88));
+        assert!(
+            bytes_of(&roomy) == want(standard),
+            "standard tables where they fit"
+        );
+
+        let tight = loupe_views(&maps, (standard_size + optimised_size) / 2);
+        assert_eq!((tight.step, tight.quality), (1, 88));
+        assert!(
+            bytes_of(&tight) == want(optimised),
+            "optimised where only they fit"
+        );
+    }
+
     #[test]
     fn the_bands_cover_each_view_once_in_order() {
         let sources = vec![("albedo", weave(40, 100)), ("normal", weave(40, 100))];
