@@ -86,7 +86,7 @@ impl DnRows {
             .zip(&mut b[at.clone()])
             .zip(&mut self.saturated.data[at]);
         for ((((r, g), b), clipped), px) in outputs.zip(pixels) {
-            *clipped = px.iter().any(|&v| v as u32 >= self.saturated_from);
+            *clipped = reached_white(px, self.saturated_from);
             [*r, *g, *b] = px;
         }
     }
@@ -112,7 +112,7 @@ impl DnRows {
                 u16::from_be_bytes([px[4], px[5]]),
             ];
             [r[k], g[k], b[k]] = v;
-            clipped[k] = (v[0] as u32 >= from) | (v[1] as u32 >= from) | (v[2] as u32 >= from);
+            clipped[k] = reached_white(v, from);
         }
     }
 
@@ -129,6 +129,15 @@ fn saturated_from(white: f64) -> u32 {
     } else {
         white.ceil().clamp(0.0, 65536.0) as u32
     }
+}
+
+/// Whether any channel of `px` reached the white level, `saturated_from` being
+/// [`saturated_from`] of it (all three compared, no early exit: the row loops vectorise).
+#[inline(always)]
+fn reached_white(px: [u16; 3], saturated_from: u32) -> bool {
+    (px[0] as u32 >= saturated_from)
+        | (px[1] as u32 >= saturated_from)
+        | (px[2] as u32 >= saturated_from)
 }
 
 /// A decoded frame and its stored size (width, height).

@@ -75,7 +75,10 @@ pub(super) struct NoiseSums<T> {
 impl<T: Real> NoiseSums<T> {
     #[inline(always)]
     pub(super) fn new(weighing: Weighing, (x, y): (usize, usize)) -> Self {
-        let own = (weighing.noise.shared_cfa_sample).map(|pattern| own_channel(pattern, (x, y)));
+        let own = weighing
+            .noise
+            .shared_cfa_sample
+            .map(|pattern| own_channel(pattern, (x, y)));
         let zero = [T::zero(); LANES];
         NoiseSums {
             weighing,
