@@ -448,7 +448,7 @@ impl CaptureSet {
         let lights: Vec<DecodedFrame> = decoded.collect();
         let first = &lights[0];
         let full_raw = encoding == Encoding::Raw && options.resolution == Resolution::Full;
-        let info = DecodeInfo {
+        let mut info = DecodeInfo {
             encoding: encoding.name().into(),
             resolution: options.resolution,
             method: match encoding {
@@ -475,6 +475,7 @@ impl CaptureSet {
             },
             noise_shared_cfa_sample: first.cfa_pattern.clone().filter(|_| full_raw),
             undistortion: String::new(),
+            backing: None,
         };
         // The lights' raw colours: the stack demosaic scales each light's missing channels by
         // them (the LEDs' power cancels out).
@@ -494,7 +495,7 @@ impl CaptureSet {
                 )
             })
             .flatten();
-        let frames = develop_frames_timed(
+        let developed = develop_frames_timed(
             lights,
             // Binned frames had it subtracted in their linear pass.
             dark_frame.filter(|_| subtracted.is_some() && !bin),
@@ -504,6 +505,7 @@ impl CaptureSet {
             clock,
         )
         .map_err(|e| Error::capture_set(&self.dir, e.to_string()))?;
+        info.backing = developed.backing;
         let (width, height) = match encoding {
             Encoding::Raw => options.resolution.size(image.width, image.height),
             Encoding::Dn16 => (image.width, image.height),
@@ -513,7 +515,7 @@ impl CaptureSet {
                 width,
                 height,
                 window: options.resolution.window(image.window),
-                lights: frames,
+                lights: developed.frames,
             },
             info,
         })

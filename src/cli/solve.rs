@@ -406,6 +406,14 @@ pub(super) fn print_solve(set: &Path, out: &Path, report: &psscan::maps::Report)
             "  frames: {} ({}); dark frame: {}",
             decode.encoding, decode.method, decode.dark_frame
         );
+        if let Some(backing) = &decode.backing {
+            let [r, g, b] = backing.albedo;
+            println!(
+                "  holes: {} isolated pixels showed one material through the weave (albedo \
+                 {r:.3} {g:.3} {b:.3}) and took its colour",
+                backing.pixels
+            );
+        }
     }
     if let Some(derived) = report
         .derived

@@ -10,11 +10,12 @@ use serde::Serialize;
 use rayon::prelude::*;
 
 use super::decode::{decode_raw_keeping, DecodedRaw, RawMeta};
+use super::hue::Backing;
 use super::linear::{decode_dn_frame, Levels};
 use super::mosaic::{subtract_dark, DarkFrame, LinearMosaic, Resolution, SharedDark};
 use super::pass::{self, LinearPass, SampleCounts};
 use super::shading::ShadingField;
-use super::stack::develop_stack;
+use super::stack::{develop_stack, Developed};
 use crate::error::{Error, Result};
 use crate::math::{select::select, MAD_TO_SIGMA};
 use crate::plane::LightFrame;
@@ -281,14 +282,15 @@ pub fn develop_frames(
     illuminants: Option<&[[f64; 3]]>,
     resolution: Resolution,
 ) -> Result<Vec<LightFrame>> {
-    develop_frames_timed(
+    let developed = develop_frames_timed(
         lights,
         dark,
         illuminants,
         None,
         resolution,
         &mut StageClock::start(),
-    )
+    )?;
+    Ok(developed.frames)
 }
 
 /// [`develop_frames`], timing the dark subtraction and the demosaic (or binning) as stages
@@ -301,7 +303,7 @@ pub fn develop_frames_timed(
     shading: Option<&ShadingField>,
     resolution: Resolution,
     clock: &mut StageClock,
-) -> Result<Vec<LightFrame>> {
+) -> Result<Developed> {
     let mut rgb = Vec::new();
     let mut mosaics = Vec::new();
     let mut binned = Vec::new();
@@ -327,7 +329,10 @@ pub fn develop_frames_timed(
                     .into(),
             ));
         }
-        return Ok(binned);
+        return Ok(Developed {
+            frames: binned,
+            backing: None,
+        });
     }
     if !rgb.is_empty() {
         if resolution != Resolution::Full {
@@ -346,7 +351,10 @@ pub fn develop_frames_timed(
                 rgb.par_iter_mut().try_for_each(|f| subtract_dark(f, &dark))
             })?;
         }
-        return Ok(rgb);
+        return Ok(Developed {
+            frames: rgb,
+            backing: None,
+        });
     }
     if let Some(dark) = dark {
         let FrameData::Mosaic(dark) = dark.data else {
@@ -524,6 +532,11 @@ pub struct DecodeInfo {
     /// none (dn16 sets, whose channels are taken as sRGB's).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub camera_to_srgb: Option<[[f64; 3]; 3]>,
+    /// The material the full-resolution demosaic found seen through the holes of the weave,
+    /// whose colour the isolated pixels showing it took (see `hue::backing`); absent where the
+    /// isolated pixels agreed on none (or the frames were not demosaiced).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub backing: Option<Backing>,
 }
 
 impl DecodeInfo {

@@ -12,8 +12,13 @@
 //! flank is another material (a patch one or two pixels wide, such as a hole in the weave),
 //! the own channel there is taken as the pixel's own.
 
+mod backing;
 mod rows;
 
+use std::sync::Mutex;
+
+pub use self::backing::Backing;
+use self::backing::{colour_the_backing, isolated_of_run, Isolated};
 use self::rows::{Candidates, SplitRow};
 use super::chroma::smooth_chroma;
 use super::five_rows::FiveRows;
@@ -38,28 +43,32 @@ const NORMAL_WEIGHT: f32 = (CONTINUITY_SCALE / 0.2) * (CONTINUITY_SCALE / 0.2);
 /// the sites' reflectances laid out as `pattern` (`sites`, read a row at a time),
 /// then averaged over the pixels of the same chroma around (see [`smooth_chroma`]). A pixel
 /// whose own reflectance is not positive gets ratios of 0 (it is black: its missing channels
-/// are 0 too).
+/// are 0 too). The isolated pixels that show the material seen through the weave's holes take
+/// its colour (see `backing`), which is returned where one was found.
 pub fn colour_ratios(
     width: usize,
     height: usize,
     pattern: [[u8; 2]; 2],
     sites: &(impl SiteRows + ?Sized),
-) -> RgbPlanes {
-    let mut out = ratios_along(width, height, pattern, sites);
+) -> (RgbPlanes, Option<Backing>) {
+    let (mut out, isolated) = ratios_along(width, height, pattern, sites);
+    let backing = colour_the_backing(pattern, &isolated, &mut out);
     smooth_chroma(pattern, &mut out);
-    out
+    (out, backing)
 }
 
 /// Every pixel's ratios before the chroma average: [`ratios_at`] at every pixel, the interior
-/// computed a row at a time (see `rows`).
+/// computed a row at a time (see `rows`); and the interior pixels that no neighbour of their
+/// own colour continues.
 fn ratios_along(
     width: usize,
     height: usize,
     pattern: [[u8; 2]; 2],
     sites: &(impl SiteRows + ?Sized),
-) -> RgbPlanes {
+) -> (RgbPlanes, Vec<Isolated>) {
     let (w, h) = (width, height);
     let mut out = RgbPlanes::new(w, h);
+    let isolated = Mutex::new(Vec::new());
     // Bands of rows: each fits the sites of its rows and the two either side of it as it
     // goes, and keeps the five rows around the one it works on (a pixel's neighbours are at
     // most two sites away, and stay within those when mirrored at the border), as they are
@@ -69,6 +78,7 @@ fn ratios_along(
         let mut split = FiveRows::<SplitRow>::starting_at(y0.saturating_sub(2));
         let mut scratch = Default::default();
         let mut candidates = Candidates::default();
+        let (mut band_isolated, mut best) = (Vec::new(), Vec::new());
         let [r, g, b] = planes;
         let band = r.chunks_mut(w).zip(g.chunks_mut(w)).zip(b.chunks_mut(w));
         for (y, ((r, g), b)) in (y0..).zip(band) {
@@ -99,6 +109,7 @@ fn ratios_along(
                     let plane = &mut *planes[c as usize];
                     rows::ratios_of_run(pattern, y, parity, c, rows, &mut candidates, plane);
                 }
+                isolated_of_run(w, y, parity, rows, &mut best, &mut band_isolated);
             }
             for x in 0..w {
                 if x < 2 || x + 2 >= w {
@@ -108,8 +119,9 @@ fn ratios_along(
                 }
             }
         }
+        isolated.lock().unwrap().append(&mut band_isolated);
     });
-    out
+    (out, isolated.into_inner().unwrap())
 }
 
 /// One row of sites as [`ratios_along`] keeps it: their fits, and each one's log reflectance,
@@ -274,7 +286,7 @@ mod tests {
     ) -> f32 {
         let (w, h, _) = size;
         let pattern = Mosaic::parse_pattern("RGGB").unwrap();
-        let ratios = colour_ratios(w, h, pattern, sites);
+        let (ratios, _) = colour_ratios(w, h, pattern, sites);
         let mut worst = 0.0f32;
         for y in 2..h - 2 {
             for x in 2..w - 2 {
@@ -344,7 +356,7 @@ mod tests {
                 }
             })
             .collect();
-        let ratios = colour_ratios(w, h, pattern, sites.as_slice());
+        let (ratios, _) = colour_ratios(w, h, pattern, sites.as_slice());
         let blue_over_green = ratios.channels()[2].data[4 * w + 9];
         // The thread's direction weighs exp(-2 (1 - cos 20 deg) NORMAL_WEIGHT / 0.1^2) =
         // exp(-3.0) = 0.049 of the hole's, with ratio 0.07 / 0.05: 1.9 % off; the chroma
@@ -379,7 +391,7 @@ mod tests {
                         SiteFit { albedo, normal }
                     })
                     .collect();
-                let got = ratios_along(w, h, pattern, sites.as_slice());
+                let (got, _) = ratios_along(w, h, pattern, sites.as_slice());
                 let logs: Vec<f32> = sites.iter().map(|s| s.albedo.ln()).collect();
                 let at = |x: isize, y: isize| {
                     let i = mirror(y, h) * w + mirror(x, w);

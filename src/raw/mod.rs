@@ -32,6 +32,7 @@ pub use develop::{
     DevelopOptions, Encoding, FrameData, RawPrep, BINNING_PASS_STAGE, DARK_STAGE, DECODE_STAGES,
 };
 pub use dng::{encode_dng, DngStorage};
+pub use hue::Backing;
 pub use linear::{decode_dn_frame, decode_dn_image, encode_png16, read_dn_image, DnImage, Levels};
 pub use mosaic::{
     bilinear, subtract_dark, DarkFrame, LinearMosaic, Mosaic, Resolution, BLUE, GREEN, RED,
@@ -39,4 +40,4 @@ pub use mosaic::{
 };
 pub use pass::{LinearPass, SampleCounts};
 pub use shading::ShadingField;
-pub use stack::develop_stack;
+pub use stack::{develop_stack, Developed};

@@ -97,8 +97,9 @@ impl Resolution {
                  scaled from it by the pixel's colour ratios from the whole stack (each CFA \
                  site's albedo fitted under the rig's lights, interpolated along the pixel's own \
                  material, the chroma then averaged over the pixels of the same chroma around; \
-                 without the lights, a bilinear demosaic of the white-balanced sum of \
-                 all frames)"
+                 isolated pixels that show one material through the weave's holes take its \
+                 colour, measured on all of them; without the lights, a bilinear demosaic of \
+                 the white-balanced sum of all frames)"
             }
         }
     }

@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 
-use super::hue::colour_ratios;
+use super::hue::{colour_ratios, Backing};
 use super::mosaic::{bilinear, LinearMosaic, Mosaic, Resolution};
 use super::shading::{ShadingField, SiteFitter};
 use crate::error::{Error, Result};
@@ -48,9 +48,9 @@ pub fn develop_stack(
     illuminants: Option<&[[f64; 3]]>,
     shading: Option<&ShadingField>,
     resolution: Resolution,
-) -> Result<Vec<LightFrame>> {
+) -> Result<Developed> {
     let Some(first) = frames.first() else {
-        return Ok(Vec::new());
+        return Ok(Developed::default());
     };
     let (w, h, pattern) = (first.width, first.height, first.pattern);
     if let Some(odd) = frames
@@ -81,7 +81,10 @@ pub fn develop_stack(
         }
     };
     match resolution {
-        Resolution::Half => Ok(frames.iter().map(LinearMosaic::bin2x2).collect()),
+        Resolution::Half => Ok(Developed {
+            frames: frames.iter().map(LinearMosaic::bin2x2).collect(),
+            backing: None,
+        }),
         Resolution::Full => {
             if let Some(field) = shading.filter(|f| f.frames() != frames.len()) {
                 return Err(Error::Invalid(format!(
@@ -95,11 +98,21 @@ pub fn develop_stack(
     }
 }
 
+/// A developed stack: its frames, and the material the full-resolution demosaic found seen
+/// through the holes of the weave (see `hue::backing`), if any.
+#[derive(Default)]
+pub struct Developed {
+    /// The light frames, in the stack's order.
+    pub frames: Vec<LightFrame>,
+    /// The material seen through the holes, where the isolated pixels agreed on one.
+    pub backing: Option<Backing>,
+}
+
 fn develop_full(
     frames: Vec<LinearMosaic>,
     colours: &[[f32; 3]],
     shading: Option<&ShadingField>,
-) -> Vec<LightFrame> {
+) -> Developed {
     let first = &frames[0];
     let (w, h, pattern) = (first.width, first.height, first.pattern);
     // The white-balanced sum of the stack, and its colour at every pixel.
@@ -118,17 +131,17 @@ fn develop_full(
     // Below this the stack's own-channel sum is noise (a fraction of a DN per frame): the
     // pixel is black in every frame and its colour ratios mean nothing.
     let floor = 1e-5 * frames.len() as f32;
-    let ratios = match shading {
+    let (ratios, backing) = match shading {
         Some(field) => {
             let sites = SiteFitter::new(&frames, colours, field, &sum, floor);
             colour_ratios(w, h, pattern, &sites)
         }
-        None => bilinear_ratios(w, h, pattern, &sum, floor),
+        None => (bilinear_ratios(w, h, pattern, &sum, floor), None),
     };
     // Every frame keeps its samples and shares the ratios: its missing channels are computed
     // where they are read (`CfaColour::rgb`), so the stack takes one plane per frame, not three.
     let ratios = Arc::new(ratios);
-    frames
+    let frames = frames
         .into_iter()
         .zip(colours)
         .map(|(frame, colour)| {
@@ -147,7 +160,8 @@ fn develop_full(
                 ),
             }
         })
-        .collect()
+        .collect();
+    Developed { frames, backing }
 }
 
 /// Every pixel's channel ratios (to its own channel) from a plain bilinear demosaic of the
@@ -185,7 +199,7 @@ impl Mosaic {
     /// This frame developed on its own (at full resolution its colour ratios come from its own
     /// neighbourhood; see [`develop_stack`]).
     pub fn develop(&self, resolution: Resolution) -> Result<LightFrame> {
-        let mut frames = develop_stack(vec![self.linearize()?], None, None, resolution)?;
+        let mut frames = develop_stack(vec![self.linearize()?], None, None, resolution)?.frames;
         let frame = frames.pop().expect("one frame in, one out");
         // One frame shares its ratios with nothing: three planes are what its users want.
         Ok(LightFrame::from_rgb(
@@ -313,7 +327,9 @@ mod tests {
                     f
                 })
                 .collect();
-            develop_stack(frames, Some(&illuminants), Some(&field), Resolution::Full).unwrap()
+            develop_stack(frames, Some(&illuminants), Some(&field), Resolution::Full)
+                .unwrap()
+                .frames
         };
         for (raw, clips) in [(&clipping, true), (&unclipped, false)] {
             let (kept, linear) = (develop(raw, true), develop(raw, false));
@@ -341,8 +357,9 @@ mod tests {
     fn the_stack_demosaic_keeps_every_pixels_own_shading() {
         let (w, h) = (40, 30);
         let (frames, illuminants, truth) = shaded_stack(w, h);
-        let developed =
-            develop_stack(frames.clone(), Some(&illuminants), None, Resolution::Full).unwrap();
+        let developed = develop_stack(frames.clone(), Some(&illuminants), None, Resolution::Full)
+            .unwrap()
+            .frames;
         for (k, frame) in developed.iter().enumerate() {
             // Each frame keeps one sample per pixel and shares the stack's ratios.
             assert!(frame.cfa.is_some() && frame.rgb.r.data.is_empty());
@@ -377,8 +394,9 @@ mod tests {
                 *v *= rng.gen_range(0.1f32..1.0);
             }
         }
-        let developed =
-            develop_stack(shuffled.clone(), Some(&illuminants), None, Resolution::Full).unwrap();
+        let developed = develop_stack(shuffled.clone(), Some(&illuminants), None, Resolution::Full)
+            .unwrap()
+            .frames;
         for i in (0..w * h).step_by(7) {
             let (x, y) = (i % w, i / w);
             let own = shuffled[0].channel(x, y);

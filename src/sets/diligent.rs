@@ -113,6 +113,7 @@ fn decode_info() -> DecodeInfo {
         levels: diligent::LEVELS,
         camera: None,
         camera_to_srgb: None,
+        backing: None,
         dark_frame: "none in the set".into(),
         dark_subtracted: false,
         noise_channel_scale: [1.0; 3],

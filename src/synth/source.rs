@@ -105,6 +105,7 @@ impl SetSource for SceneSource<'_> {
             levels,
             camera: None,
             camera_to_srgb: None,
+            backing: None,
             dark_frame: "none: the scene is rendered without one".into(),
             dark_subtracted: false,
             noise_channel_scale: [1.0; 3],

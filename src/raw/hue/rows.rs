@@ -14,9 +14,9 @@ use crate::raw::shading::SiteFit;
 /// One row of sites, each field split by column parity: `[even columns, odd columns]`.
 #[derive(Default)]
 pub(super) struct SplitRow {
-    albedo: [Vec<f32>; 2],
-    log: [Vec<f32>; 2],
-    normal: [[Vec<f32>; 3]; 2],
+    pub(super) albedo: [Vec<f32>; 2],
+    pub(super) log: [Vec<f32>; 2],
+    pub(super) normal: [[Vec<f32>; 3]; 2],
 }
 
 impl SplitRow {
