@@ -18,7 +18,7 @@ mod rows;
 use std::sync::Mutex;
 
 pub use self::backing::Backing;
-use self::backing::{colour_the_backing, isolated_of_run, Isolated};
+use self::backing::{colour_the_backing, isolated_of_run, Isolated, Run};
 use self::rows::{Candidates, SplitRow};
 use super::chroma::smooth_chroma;
 use super::five_rows::FiveRows;
@@ -109,7 +109,8 @@ fn ratios_along(
                     let plane = &mut *planes[c as usize];
                     rows::ratios_of_run(pattern, y, parity, c, rows, &mut candidates, plane);
                 }
-                isolated_of_run(w, y, parity, rows, &mut best, &mut band_isolated);
+                let run = Run { w, y, parity, rows };
+                isolated_of_run(&run, &mut best, &mut band_isolated);
             }
             for x in 0..w {
                 if x < 2 || x + 2 >= w {

@@ -35,37 +35,30 @@ pub(super) struct Isolated {
     pub log: f32,
 }
 
-/// Pushes the isolated interior pixels of `parity` in row `y` (of width `w`) onto `out`.
-/// `rows[2 + dy]` is row `y + dy` split by column parity; the same-colour sites two pixels
-/// away are at split index `j - 1 ..= j + 1` of rows `y - 2`, `y` and `y + 2`. `best` is
-/// scratch.
-pub(super) fn isolated_of_run(
-    w: usize,
-    y: usize,
-    parity: usize,
-    rows: [&SplitRow; 5],
-    best: &mut Vec<f32>,
-    out: &mut Vec<Isolated>,
-) {
+/// The interior pixels of one column parity in one row: `rows[2 + dy]` is row `y + dy` (of
+/// width `w`) split by column parity, so that the same-colour sites two pixels away from split
+/// index `j` are at `j - 1 ..= j + 1` of rows `y - 2`, `y` and `y + 2`.
+pub(super) struct Run<'a> {
+    pub w: usize,
+    pub y: usize,
+    pub parity: usize,
+    pub rows: [&'a SplitRow; 5],
+}
+
+/// Pushes the isolated pixels of `run` onto `out`; `best` is scratch.
+pub(super) fn isolated_of_run(run: &Run, best: &mut Vec<f32>, out: &mut Vec<Isolated>) {
     #[cfg(target_arch = "x86_64")]
     if is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2 (checked above).
-        return unsafe { isolated_of_run_avx2(w, y, parity, rows, best, out) };
+        return unsafe { isolated_of_run_avx2(run, best, out) };
     }
-    isolated_of_run_portable(w, y, parity, rows, best, out)
+    isolated_of_run_portable(run, best, out)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn isolated_of_run_avx2(
-    w: usize,
-    y: usize,
-    parity: usize,
-    rows: [&SplitRow; 5],
-    best: &mut Vec<f32>,
-    out: &mut Vec<Isolated>,
-) {
-    isolated_of_run_portable(w, y, parity, rows, best, out)
+unsafe fn isolated_of_run_avx2(run: &Run, best: &mut Vec<f32>, out: &mut Vec<Isolated>) {
+    isolated_of_run_portable(run, best, out)
 }
 
 /// Every direction's change over the whole run, branch-free, kept as each pixel's smallest
@@ -73,10 +66,7 @@ unsafe fn isolated_of_run_avx2(
 /// the cost of the ratios themselves).
 #[inline(always)]
 fn isolated_of_run_portable(
-    w: usize,
-    y: usize,
-    parity: usize,
-    rows: [&SplitRow; 5],
+    &Run { w, y, parity, rows }: &Run,
     best: &mut Vec<f32>,
     out: &mut Vec<Isolated>,
 ) {
