@@ -15,10 +15,8 @@
 mod backing;
 mod rows;
 
-use std::sync::Mutex;
-
 pub use self::backing::Backing;
-use self::backing::{colour_the_backing, isolated_of_run, Isolated, Run};
+use self::backing::{colour_the_backing, isolated_of_run, Isolated, IsolatedSites, Run};
 use self::rows::{Candidates, SplitRow};
 use super::chroma::smooth_chroma;
 use super::five_rows::FiveRows;
@@ -68,7 +66,7 @@ fn ratios_along(
 ) -> (RgbPlanes, Vec<Isolated>) {
     let (w, h) = (width, height);
     let mut out = RgbPlanes::new(w, h);
-    let isolated = Mutex::new(Vec::new());
+    let isolated = IsolatedSites::new(w * h);
     // Bands of rows: each fits the sites of its rows and the two either side of it as it
     // goes, and keeps the five rows around the one it works on (a pixel's neighbours are at
     // most two sites away, and stay within those when mirrored at the border), as they are
@@ -120,9 +118,9 @@ fn ratios_along(
                 }
             }
         }
-        isolated.lock().unwrap().append(&mut band_isolated);
+        isolated.add(&mut band_isolated);
     });
-    (out, isolated.into_inner().unwrap())
+    (out, isolated.into_sites())
 }
 
 /// One row of sites as [`ratios_along`] keeps it: their fits, and each one's log reflectance,

@@ -16,6 +16,8 @@
 //! Where the holes show more than one material, or a scene has no holes, the isolated sites do
 //! not agree and nothing changes.
 
+use std::sync::Mutex;
+
 use super::rows::{interior_run, SplitRow};
 use super::{CONTINUITY_SCALE, NORMAL_WEIGHT};
 use crate::plane::RgbPlanes;
@@ -27,6 +29,46 @@ const ISOLATED: f32 = 5.0 * CONTINUITY_SCALE * CONTINUITY_SCALE;
 
 /// Isolated sites of each colour needed before their reflectances are read as one material.
 const MIN_SITES: usize = 50;
+
+/// Isolated sites past this share of an image's pixels are not holes in a weave but a
+/// texture finer than the mosaic resolves, or noise: none is kept (each takes 16 bytes).
+const MOST_SITES_PER_PIXEL: f64 = 0.25;
+
+/// The isolated sites of an image, gathered band by band from parallel workers.
+pub(super) struct IsolatedSites {
+    sites: Mutex<Option<Vec<Isolated>>>,
+    most: usize,
+}
+
+impl IsolatedSites {
+    /// None yet, for an image of `pixels`.
+    pub(super) fn new(pixels: usize) -> IsolatedSites {
+        IsolatedSites {
+            sites: Mutex::new(Some(Vec::new())),
+            most: (pixels as f64 * MOST_SITES_PER_PIXEL) as usize,
+        }
+    }
+
+    /// Moves a band's isolated sites in (`band` is left empty); past the most kept, drops
+    /// them all for good.
+    pub(super) fn add(&self, band: &mut Vec<Isolated>) {
+        let mut sites = self.sites.lock().expect("not poisoned");
+        if let Some(kept) = sites.as_mut() {
+            if kept.len() + band.len() > self.most {
+                *sites = None;
+            } else {
+                kept.append(band);
+            }
+        }
+        band.clear();
+    }
+
+    /// The sites gathered: none where there were too many.
+    pub(super) fn into_sites(self) -> Vec<Isolated> {
+        let sites = self.sites.into_inner().expect("not poisoned");
+        sites.unwrap_or_default()
+    }
+}
 
 /// One isolated site: its pixel index and its log reflectance.
 #[derive(Clone, Copy, Debug)]
@@ -319,5 +361,22 @@ mod tests {
         assert_eq!(ratios.r.data, before.r.data);
         assert_eq!(ratios.g.data, before.g.data);
         assert_eq!(ratios.b.data, before.b.data);
+    }
+
+    #[test]
+    fn isolated_sites_past_a_quarter_of_the_pixels_are_dropped() {
+        let site = |index| Isolated { index, log: 0.0 };
+        let sites = IsolatedSites::new(100);
+        sites.add(&mut (0..20).map(site).collect());
+        let mut band: Vec<Isolated> = (20..25).map(site).collect();
+        sites.add(&mut band);
+        assert!(band.is_empty());
+        assert_eq!(sites.into_sites().len(), 25);
+        let sites = IsolatedSites::new(100);
+        sites.add(&mut (0..20).map(site).collect());
+        sites.add(&mut (20..26).map(site).collect());
+        // Once over, later bands do not refill it.
+        sites.add(&mut (30..31).map(site).collect());
+        assert!(sites.into_sites().is_empty());
     }
 }
