@@ -487,7 +487,7 @@ pub fn below_black_floor(dark: &DecodedFrame) -> Option<f32> {
 /// a copy ([`select`]: the values `select_nth_unstable` finds in a vector of them): a 16 MP
 /// dark frame's copy and two selections on one thread took about 0.2 s in which the light
 /// frames, which wait for this floor, left the other cores idle.
-fn median_and_sigma(values: &[f32]) -> (f32, f32) {
+pub(super) fn median_and_sigma(values: &[f32]) -> (f32, f32) {
     let middle = |n: usize| [n / 2];
     let finite = |i: usize| Some(values[i]).filter(|x| x.is_finite());
     let Some(median) = select(values.len(), finite, middle).map(|s| s.at[0]) else {

@@ -37,6 +37,16 @@ const FLANK_CONTINUES: f32 = 3.0 * CONTINUITY_SCALE;
 /// Squared normal turn (radians^2) that counts like a squared log change of the own channel.
 const NORMAL_WEIGHT: f32 = (CONTINUITY_SCALE / 0.2) * (CONTINUITY_SCALE / 0.2);
 
+/// How far the site at log reflectance change `step` and normal turn `cos` (the cosine
+/// between the two normals) is from continuing a pixel's material: the squared log change
+/// plus the squared turn weighted by [`NORMAL_WEIGHT`]. Directions are weighed by it (here and
+/// in `rows`), and a site none continues is isolated (`backing`).
+#[inline(always)]
+fn continuity_change(step: f32, cos: f32) -> f32 {
+    let turn = (1.0 - cos.min(1.0)).max(0.0) * 2.0; // ~ angle^2
+    step.powi(2) + turn * NORMAL_WEIGHT
+}
+
 /// Per pixel, each channel's ratio to the pixel's own channel (1 for the own channel), from
 /// the sites' reflectances laid out as `pattern` (`sites`, read a row at a time),
 /// then averaged over the pixels of the same chroma around (see [`smooth_chroma`]). A pixel
@@ -202,8 +212,7 @@ fn ratio_along<'a>(
         let change = if beyond > 0.0 {
             let n = neighbour.normal;
             let cos = own.normal[0] * n[0] + own.normal[1] * n[1] + own.normal[2] * n[2];
-            let turn = (1.0 - cos.min(1.0)).max(0.0) * 2.0; // ~ angle^2
-            (beyond_log - own_log).powi(2) + turn * NORMAL_WEIGHT
+            continuity_change(beyond_log - own_log, cos)
         } else {
             f32::INFINITY
         };

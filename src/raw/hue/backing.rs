@@ -18,12 +18,12 @@
 
 use std::sync::Mutex;
 
+use super::super::develop::median_and_sigma;
 use super::rows::{interior_run, SplitRow};
-use super::{CONTINUITY_SCALE, NORMAL_WEIGHT};
+use super::{continuity_change, CONTINUITY_SCALE};
 use crate::plane::RgbPlanes;
 
-/// The continuity change (squared log change of the own channel plus the weighted normal
-/// turn, as `hue` weighs directions by) above which no direction continues the pixel's
+/// The continuity change ([`continuity_change`]) above which no direction continues the pixel's
 /// material: a direction there weighs under `e^-5` (0.7 %) of a perfect continuation.
 const ISOLATED: f32 = 5.0 * CONTINUITY_SCALE * CONTINUITY_SCALE;
 
@@ -132,9 +132,7 @@ fn isolated_of_run_portable(
             .map(|v| &v[start..start + len]);
         for k in 0..len {
             let cos = own_n[0][k] * n[0][k] + own_n[1][k] * n[1][k] + own_n[2][k] * n[2][k];
-            let turn = (1.0 - cos.min(1.0)).max(0.0) * 2.0;
-            let step = log[k] - own_log[k];
-            best[k] = best[k].min(step * step + turn * NORMAL_WEIGHT);
+            best[k] = best[k].min(continuity_change(log[k] - own_log[k], cos));
         }
     }
     for (k, (&best, &log)) in best.iter().zip(own_log).enumerate() {
@@ -186,11 +184,11 @@ pub(super) fn colour_the_backing(
         by_colour[colour_of(site.index)].push(site.log);
     }
     let mut log = [0.0f32; 3];
-    for (c, logs) in by_colour.iter_mut().enumerate() {
+    for (c, logs) in by_colour.iter().enumerate() {
         if logs.len() < MIN_SITES {
             return None;
         }
-        let (centre, spread) = median_and_spread(logs);
+        let (centre, spread) = median_and_sigma(logs);
         if spread >= CONTINUITY_SCALE {
             return None;
         }
@@ -213,19 +211,6 @@ pub(super) fn colour_the_backing(
         albedo: log.map(f32::exp),
         pixels,
     })
-}
-
-/// The median of `values` and their robust spread (1.4826 times the median absolute
-/// deviation: the standard deviation for normal values). Reorders `values`.
-fn median_and_spread(values: &mut [f32]) -> (f32, f32) {
-    let centre = median(values);
-    let mut deviations: Vec<f32> = values.iter().map(|v| (v - centre).abs()).collect();
-    (centre, 1.4826 * median(&mut deviations))
-}
-
-fn median(values: &mut [f32]) -> f32 {
-    let mid = values.len() / 2;
-    *values.select_nth_unstable_by(mid, f32::total_cmp).1
 }
 
 #[cfg(test)]

@@ -7,7 +7,7 @@
 //! computed branch-free over a row of pixels, from the sites' fields split by column parity
 //! into contiguous arrays.
 
-use super::{neighbours_of_channel, CONTINUITY_SCALE, FLANK_CONTINUES, NORMAL_WEIGHT};
+use super::{continuity_change, neighbours_of_channel, CONTINUITY_SCALE, FLANK_CONTINUES};
 use crate::math::exp_neg;
 use crate::raw::shading::SiteFit;
 
@@ -169,9 +169,8 @@ fn direction(
     let (own_n, n) = (own_n.map(|v| &v[..len]), n.map(|v| &v[..len]));
     for k in 0..len {
         let cos = own_n[0][k] * n[0][k] + own_n[1][k] * n[1][k] + own_n[2][k] * n[2][k];
-        let turn = (1.0 - cos.min(1.0)).max(0.0) * 2.0;
         let step = beyond_log[k] - own_log[k];
-        let continued = step.powi(2) + turn * NORMAL_WEIGHT;
+        let continued = continuity_change(step, cos);
         change[k] = if beyond[k] > 0.0 {
             continued
         } else {
