@@ -68,24 +68,80 @@ pub fn encode_png16_into(
     path: &Path,
     width: usize,
     height: usize,
-    mut rgb: Vec<u16>,
+    rgb: Vec<u16>,
     compression: PngCompression,
 ) -> Result<()> {
-    use rayon::prelude::*;
     if rgb.len() != width * height * 3 {
         return Err(PsError::image(path, "image size does not match its data"));
     }
-    // PNG stores samples big-endian: swapped in place and handed over as bytes, where the
-    // image crate's encoder copies the image into a byte vector that grows by doubling.
-    rgb.par_iter_mut().for_each(|v| *v = v.to_be());
-    let samples: &[u8] = bytemuck::cast_slice(&rgb);
+    let row = width * 3;
+    let fill = |y: usize, out: &mut [u16]| out.copy_from_slice(&rgb[y * row..(y + 1) * row]);
+    encode_png16_rows_into(out, path, width, height, &fill, compression)
+}
+
+/// Row `y` of an image as interleaved 16-bit RGB samples (native byte order), written into a
+/// slice `3 width` long.
+pub type Rgb16Row<'a> = dyn Fn(usize, &mut [u16]) + Sync + 'a;
+
+/// A 16-bit RGB PNG whose rows `fill` makes as they are written, a band of rows at a time
+/// (made in parallel): the image is never interleaved whole (96 MB of fresh memory per 16 MP
+/// map); `path` only names the file in errors.
+pub fn encode_png16_rows_into(
+    out: impl std::io::Write,
+    path: &Path,
+    width: usize,
+    height: usize,
+    fill: &Rgb16Row,
+    compression: PngCompression,
+) -> Result<()> {
+    let rows = BigEndianRows { width, fill };
     let mut deflate = compression.deflate();
     // The fast deflate, streamed, makes incompressible data larger than storing it (up to a
     // tenth: a normal map's low bytes are noise). A sample of rows says which it will be.
-    if compression == PngCompression::Fast && !compresses(samples, width, height) {
+    if compression == PngCompression::Fast && !compresses(&rows, height) {
         deflate = png::Compression::NoCompression;
     }
-    png16_stream(out, samples, width, height, deflate).map_err(|e| PsError::image(path, e))
+    png16_stream(out, &rows, height, deflate).map_err(|e| PsError::image(path, e))
+}
+
+/// An image's rows as PNG stores 16-bit samples (big-endian), from a [`Rgb16Row`].
+struct BigEndianRows<'a, 'b> {
+    width: usize,
+    fill: &'a Rgb16Row<'b>,
+}
+
+impl BigEndianRows<'_, '_> {
+    /// Rows per band: 32 rows of a 16 MP map are under a MiB.
+    const BAND: usize = 32;
+
+    /// The rows `ys` into `band`, big-endian, made in parallel.
+    fn band(&self, ys: std::ops::Range<usize>, band: &mut Vec<u16>) {
+        use rayon::prelude::*;
+        let row = self.width * 3;
+        band.resize(ys.len() * row, 0);
+        band.par_chunks_mut(row.max(1))
+            .zip(ys)
+            .for_each(|(samples, y)| {
+                (self.fill)(y, samples);
+                for v in samples {
+                    *v = v.to_be();
+                }
+            });
+    }
+
+    /// Calls `write` with each band of rows `0..height` in order, as bytes.
+    fn each_band(
+        &self,
+        height: usize,
+        mut write: impl FnMut(&[u8]) -> std::result::Result<(), png::EncodingError>,
+    ) -> std::result::Result<(), png::EncodingError> {
+        let mut band = Vec::new();
+        for y0 in (0..height).step_by(Self::BAND) {
+            self.band(y0..(y0 + Self::BAND).min(height), &mut band);
+            write(bytemuck::cast_slice(&band))?;
+        }
+        Ok(())
+    }
 }
 
 /// Rows of the sample [`compresses`] encodes: enough to see the image's statistics, a small
@@ -99,39 +155,36 @@ const PNG_SAMPLE_ROWS: usize = 64;
 /// deflates.
 const MIN_PNG_SAVING: f64 = 0.1;
 
-/// Whether the fast deflate makes `samples` (big-endian 16-bit RGB rows) at least
-/// [`MIN_PNG_SAVING`] smaller than storing them, judged on [`PNG_SAMPLE_ROWS`] rows spread over
-/// the image.
-fn compresses(samples: &[u8], width: usize, height: usize) -> bool {
-    let row = width * 6;
-    let rows = height.min(PNG_SAMPLE_ROWS);
-    if rows == 0 {
+/// Whether the fast deflate makes `rows` at least [`MIN_PNG_SAVING`] smaller than storing
+/// them, judged on [`PNG_SAMPLE_ROWS`] rows spread over the image.
+fn compresses(rows: &BigEndianRows, height: usize) -> bool {
+    let count = height.min(PNG_SAMPLE_ROWS);
+    if count == 0 {
         return true;
     }
-    let sample: Vec<u8> = (0..rows)
-        .flat_map(|k| {
-            let y = k * height / rows;
-            &samples[y * row..(y + 1) * row]
-        })
-        .copied()
-        .collect();
-    let mut encoded = Vec::with_capacity(file_bound(sample.len() + rows));
-    match png16_stream(&mut encoded, &sample, width, rows, png::Compression::Fast) {
-        Ok(()) => (encoded.len() as f64) <= (1.0 - MIN_PNG_SAVING) * (rows * (row + 1)) as f64,
+    // The sample is an image of its own: its row `k` is the image's row `k height / count`.
+    let sample = BigEndianRows {
+        width: rows.width,
+        fill: &|k: usize, out: &mut [u16]| (rows.fill)(k * height / count, out),
+    };
+    let stored = (count * (rows.width * 6 + 1)) as f64;
+    let mut encoded = Vec::with_capacity(file_bound(stored as usize));
+    match png16_stream(&mut encoded, &sample, count, png::Compression::Fast) {
+        Ok(()) => (encoded.len() as f64) <= (1.0 - MIN_PNG_SAVING) * stored,
         Err(_) => true,
     }
 }
 
-/// Big-endian 16-bit RGB rows as PNG file bytes written to `out`, the deflate output streamed
-/// chunk by chunk (1 MiB IDAT chunks), never a whole-image buffer.
+/// PNG file bytes of `height` rows written to `out`, the deflate output streamed chunk by
+/// chunk (1 MiB IDAT chunks), never a whole-image buffer.
 fn png16_stream(
     out: impl std::io::Write,
-    samples: &[u8],
-    width: usize,
+    rows: &BigEndianRows,
     height: usize,
     deflate: png::Compression,
 ) -> std::result::Result<(), png::EncodingError> {
     use std::io::Write;
+    let width = rows.width;
     let mut encoder = png::Encoder::new(out, width as u32, height as u32);
     encoder.set_color(png::ColorType::Rgb);
     encoder.set_depth(png::BitDepth::Sixteen);
@@ -147,14 +200,17 @@ fn png16_stream(
         // in a buffer of its own first (96 MB at 16 MP), and its streaming one runs zlib at
         // level 0, several times slower.
         let mut idat = StoredIdat::new(&mut writer, height * (width * 6 + 1));
-        for row in samples.chunks_exact(width * 6) {
-            idat.write(&[0])?; // filter type None
-            idat.write(row)?;
-        }
+        rows.each_band(height, |band| {
+            for row in band.chunks_exact(width * 6) {
+                idat.write(&[0])?; // filter type None
+                idat.write(row)?;
+            }
+            Ok(())
+        })?;
         idat.finish()?;
     } else {
         let mut stream = writer.stream_writer_with_size(1 << 20)?;
-        stream.write_all(samples)?;
+        rows.each_band(height, |band| Ok(stream.write_all(band)?))?;
         stream.finish()?;
     }
     writer.finish()?;
@@ -543,8 +599,13 @@ mod tests {
         for (w, h) in [(14, 771), (14, 1542), (1, 1), (300, 700)] {
             let rgb = rgb16(w, h, true);
             let samples: Vec<u8> = rgb.iter().flat_map(|v| v.to_be_bytes()).collect();
+            let fill = |y: usize, out: &mut [u16]| out.copy_from_slice(&rgb[y * w * 3..][..w * 3]);
+            let rows = BigEndianRows {
+                width: w,
+                fill: &fill,
+            };
             let mut bytes = Vec::new();
-            png16_stream(&mut bytes, &samples, w, h, png::Compression::NoCompression).unwrap();
+            png16_stream(&mut bytes, &rows, h, png::Compression::NoCompression).unwrap();
             let back = image::load_from_memory(&bytes).unwrap().into_rgb16();
             assert_eq!(back.into_raw(), rgb, "{w} x {h}");
 

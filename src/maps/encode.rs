@@ -65,60 +65,72 @@ pub fn u16_to_unit(v: u16) -> f32 {
     v as f32 / 65535.0 * 2.0 - 1.0
 }
 
-/// Interleaved 16-bit RGB of the normal map.
-pub fn normal_rgb16(result: &SolveResult, convention: NormalConvention) -> Vec<u16> {
+/// Row `y` of the normal map as interleaved 16-bit RGB, for `io::encode_png16_rows_into`.
+pub fn normal_rows16(
+    result: &SolveResult,
+    convention: NormalConvention,
+) -> impl Fn(usize, &mut [u16]) + Sync + '_ {
     let [nx, ny, nz] = &result.normal;
-    let width = result.width.max(1);
-    let mut out = vec![0u16; nx.len() * 3];
-    // Row slices zipped, not a pixel index through a closure (`interleave`): the loop then
-    // has no bounds checks and vectorises.
-    out.par_chunks_mut(width * 3)
-        .zip(nx.data.par_chunks(width))
-        .zip(ny.data.par_chunks(width))
-        .zip(nz.data.par_chunks(width))
-        .for_each(|(((row, x), y), z)| {
-            for (((px, &x), &y), &z) in row.chunks_exact_mut(3).zip(x).zip(y).zip(z) {
-                px[0] = unit_to_u16(x);
-                px[1] = unit_to_u16(convention.y(y));
-                px[2] = unit_to_u16(z);
-            }
-        });
-    out
+    let width = result.width;
+    move |y, row| {
+        let span = y * width..(y + 1) * width;
+        // Row slices zipped, not a pixel index: the loop has no bounds checks and vectorises.
+        let (x, yy, z) = (
+            &nx.data[span.clone()],
+            &ny.data[span.clone()],
+            &nz.data[span],
+        );
+        for (((px, &x), &y), &z) in row.chunks_exact_mut(3).zip(x).zip(yy).zip(z) {
+            px[0] = unit_to_u16(x);
+            px[1] = unit_to_u16(convention.y(y));
+            px[2] = unit_to_u16(z);
+        }
+    }
 }
 
-/// Interleaved 16-bit sRGB of the albedo, through `camera_to_srgb` when the camera's
-/// primaries are not sRGB's; unsolved pixels are black. One pass, pixel by pixel: the
-/// display planes are not built first (193 MB of fresh memory at 16 MP).
-pub fn albedo_rgb16(result: &SolveResult, camera_to_srgb: Option<&[[f64; 3]; 3]>) -> Vec<u16> {
+/// Row `y` of the albedo as interleaved 16-bit sRGB, through `camera_to_srgb` when the
+/// camera's primaries are not sRGB's; unsolved pixels are black. One pass, pixel by pixel:
+/// the display planes are not built first (193 MB of fresh memory at 16 MP).
+pub fn albedo_rows16<'a>(
+    result: &'a SolveResult,
+    camera_to_srgb: Option<&'a [[f64; 3]; 3]>,
+) -> Box<dyn Fn(usize, &mut [u16]) + Sync + 'a> {
     // `round(linear_to_srgb(v) * 65535)` from the table (48 M `powf` at 16 MP otherwise),
     // the same codes; the table takes about 20 ms to build, more than a `powf` per value
     // costs under about 2 MP.
     if result.albedo[0].len() >= SRGB16_TABLE_MIN_PIXELS {
         let table = srgb16();
-        albedo_rgb16_with(result, camera_to_srgb, |v| table.code(v))
+        Box::new(albedo_rows16_with(result, camera_to_srgb, |v| {
+            table.code(v)
+        }))
     } else {
-        albedo_rgb16_with(result, camera_to_srgb, srgb16_direct)
+        Box::new(albedo_rows16_with(result, camera_to_srgb, srgb16_direct))
     }
 }
 
-/// Pixels from which [`albedo_rgb16`] quantises through the table.
+/// Pixels from which [`albedo_rows16`] quantises through the table.
 const SRGB16_TABLE_MIN_PIXELS: usize = 2_000_000;
 
-/// [`albedo_rgb16`] with each display value quantised by `code`.
-fn albedo_rgb16_with(
-    result: &SolveResult,
-    camera_to_srgb: Option<&[[f64; 3]; 3]>,
-    code: impl Fn(f32) -> u16 + Sync,
-) -> Vec<u16> {
+/// [`albedo_rows16`] with each display value quantised by `code`.
+fn albedo_rows16_with<'a>(
+    result: &'a SolveResult,
+    camera_to_srgb: Option<&'a [[f64; 3]; 3]>,
+    code: impl Fn(f32) -> u16 + Sync + 'a,
+) -> impl Fn(usize, &mut [u16]) + Sync + 'a {
     let [r, g, b] = &result.albedo;
-    interleave(result.width, r.len(), |i| {
-        if result.status[i] != PixelStatus::Solved {
-            return [0; 3];
+    let width = result.width;
+    move |y, row| {
+        for (x, px) in row.chunks_exact_mut(3).enumerate() {
+            let i = y * width + x;
+            if result.status[i] != PixelStatus::Solved {
+                px.fill(0);
+                continue;
+            }
+            let camera = [r.data[i], g.data[i], b.data[i]];
+            let display = camera_to_srgb.map_or(camera, |m| display_pixel(m, camera));
+            px.copy_from_slice(&display.map(&code));
         }
-        let camera = [r.data[i], g.data[i], b.data[i]];
-        let display = camera_to_srgb.map_or(camera, |m| display_pixel(m, camera));
-        display.map(&code)
-    })
+    }
 }
 
 /// One pixel through a 3x3 colour matrix (rows: output channels), in double precision.
@@ -138,21 +150,6 @@ pub fn to_display(rgb: &[Plane; 3], m: &[[f64; 3]; 3]) -> [Plane; 3] {
         .zip(b.data.par_iter_mut())
         .for_each(|((r, g), b)| {
             [*r, *g, *b] = display_pixel(m, [*r, *g, *b]);
-        });
-    out
-}
-
-/// `pixels` pixels (rows `width` long) interleaved as `f(pixel index)` gives each, rows in
-/// parallel (at 16 MP these are 48 M values).
-fn interleave(width: usize, pixels: usize, f: impl Fn(usize) -> [u16; 3] + Sync) -> Vec<u16> {
-    let width = width.max(1);
-    let mut out = vec![0u16; pixels * 3];
-    out.par_chunks_mut(width * 3)
-        .enumerate()
-        .for_each(|(y, row)| {
-            for (x, px) in row.chunks_exact_mut(3).enumerate() {
-                px.copy_from_slice(&f(y * width + x));
-            }
         });
     out
 }
@@ -184,7 +181,7 @@ mod tests {
     /// The one-pass albedo encoding against the two passes it replaced: display planes
     /// first, then each sample through the sRGB curve, then unsolved pixels zeroed.
     #[test]
-    fn albedo_rgb16_is_the_display_planes_encoded_with_unsolved_pixels_black() {
+    fn albedo_rows16_are_the_display_planes_encoded_with_unsolved_pixels_black() {
         let (w, h) = (37, 5);
         let mut result = SolveResult::new(w, h);
         for i in 0..w * h {
@@ -208,10 +205,44 @@ mod tests {
                     px.fill(0);
                 }
             }
-            assert_eq!(albedo_rgb16(&result, m), expected, "matrix {m:?}");
+            assert_eq!(
+                rows(w, h, &albedo_rows16(&result, m)),
+                expected,
+                "matrix {m:?}"
+            );
             // The table path, which large maps take, gives the same codes.
-            let table = albedo_rgb16_with(&result, m, |v| srgb16().code(v));
-            assert_eq!(table, expected, "matrix {m:?}, table");
+            let table = albedo_rows16_with(&result, m, |v| srgb16().code(v));
+            assert_eq!(rows(w, h, &table), expected, "matrix {m:?}, table");
+        }
+    }
+
+    /// A `w x h` image's rows from `fill`, interleaved whole.
+    fn rows(w: usize, h: usize, fill: &dyn Fn(usize, &mut [u16])) -> Vec<u16> {
+        let mut out = vec![0; w * h * 3];
+        for (y, row) in out.chunks_exact_mut(w * 3).enumerate() {
+            fill(y, row);
+        }
+        out
+    }
+
+    #[test]
+    fn normal_rows16_store_each_component_in_the_convention() {
+        let (w, h) = (3, 2);
+        let mut result = SolveResult::new(w, h);
+        for i in 0..w * h {
+            result.normal[0].data[i] = i as f32 / 10.0;
+            result.normal[1].data[i] = -(i as f32) / 20.0;
+            result.normal[2].data[i] = 1.0 - i as f32 / 30.0;
+        }
+        for convention in [NormalConvention::OpenGl, NormalConvention::DirectX] {
+            let expected: Vec<u16> = (0..w * h)
+                .flat_map(|i| {
+                    let n = result.normal.each_ref().map(|p| p.data[i]);
+                    [n[0], convention.y(n[1]), n[2]].map(unit_to_u16)
+                })
+                .collect();
+            let got = rows(w, h, &normal_rows16(&result, convention));
+            assert_eq!(got, expected, "{convention:?}");
         }
     }
 

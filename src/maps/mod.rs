@@ -207,20 +207,20 @@ fn encode_map_into(
 ) -> Result<()> {
     let (w, h) = (result.width, result.height);
     match file {
-        MapFile::NormalPng => crate::io::encode_png16_into(
+        MapFile::NormalPng => crate::io::encode_png16_rows_into(
             out,
             path,
             w,
             h,
-            encode::normal_rgb16(result, options.normal_convention),
+            &encode::normal_rows16(result, options.normal_convention),
             options.png_compression,
         ),
-        MapFile::AlbedoPng => crate::io::encode_png16_into(
+        MapFile::AlbedoPng => crate::io::encode_png16_rows_into(
             out,
             path,
             w,
             h,
-            encode::albedo_rgb16(result, options.display_matrix.as_ref()),
+            &encode::albedo_rows16(result, options.display_matrix.as_ref()),
             options.png_compression,
         ),
         MapFile::NormalExr => {
