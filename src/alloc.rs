@@ -40,7 +40,7 @@ unsafe impl GlobalAlloc for LargePageAlloc {
 
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
         let size = layout.size();
-        if size < HUGE_PAGE_MIN || size >= MMAP_THRESHOLD {
+        if !(HUGE_PAGE_MIN..MMAP_THRESHOLD).contains(&size) {
             // Small blocks stay 4 KiB; the C allocator maps blocks this large afresh, and
             // calloc leaves their pages untouched (the kernel zeroes them on first touch), so
             // the advice still comes before the first fault.

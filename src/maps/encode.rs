@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use rayon::prelude::*;
 
+use crate::io::Rgb16Row;
 use crate::maps::srgb::{srgb16, srgb16_direct};
 use crate::math::round_non_negative;
 use crate::plane::Plane;
@@ -94,7 +95,7 @@ pub fn normal_rows16(
 pub fn albedo_rows16<'a>(
     result: &'a SolveResult,
     camera_to_srgb: Option<&'a [[f64; 3]; 3]>,
-) -> Box<dyn Fn(usize, &mut [u16]) + Sync + 'a> {
+) -> Box<Rgb16Row<'a>> {
     // `round(linear_to_srgb(v) * 65535)` from the table (48 M `powf` at 16 MP otherwise),
     // the same codes; the table takes about 20 ms to build, more than a `powf` per value
     // costs under about 2 MP.
