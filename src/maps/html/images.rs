@@ -16,7 +16,7 @@ use crate::maps::encode::NormalConvention;
 use crate::maps::srgb::srgb_to_linear;
 use crate::math::select::select;
 use crate::plane::Plane;
-use crate::solve::{PixelStatus, SolveResult};
+use crate::solve::SolveResult;
 
 /// Longest side of the display-size maps (and the relight canvas).
 pub const DISPLAY_MAX_SIDE: usize = 1024;
@@ -185,23 +185,7 @@ impl<'a> FullMaps<'a> {
     ) -> FullMaps<'a> {
         let (w, h) = (result.width, result.height);
         // As `albedo.png` holds it: display primaries, clamped, black where unsolved.
-        let mut albedo = match display_matrix {
-            Some(m) => crate::maps::encode::to_display(&result.albedo, m),
-            None => result.albedo.clone(),
-        };
-        for plane in &mut albedo {
-            plane
-                .data
-                .par_iter_mut()
-                .zip(result.status.par_iter())
-                .for_each(|(v, s)| {
-                    *v = if *s == PixelStatus::Solved {
-                        v.clamp(0.0, 1.0)
-                    } else {
-                        0.0
-                    }
-                });
-        }
+        let albedo = crate::maps::encode::display_albedo(result, display_matrix);
         let to_plane = |values: Vec<f32>| Plane::from_vec(w, h, values).expect("sized");
         let (status, fit) = rayon::join(
             || to_plane(result.status.par_iter().map(|&s| s as u8 as f32).collect()),
