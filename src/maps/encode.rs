@@ -141,32 +141,21 @@ fn display_pixel(m: &[[f64; 3]; 3], rgb: [f32; 3]) -> [f32; 3] {
     std::array::from_fn(|c| (m[c][0] * v[0] + m[c][1] * v[1] + m[c][2] * v[2]) as f32)
 }
 
-/// The albedo as `albedo.png` holds it before quantisation: through `camera_to_srgb` when
-/// given, clamped to [0, 1], black where unsolved. One parallel pass into new planes (a
-/// clone first was a serial copy of 193 MB at 16 MP, one core idle).
-pub fn display_albedo(result: &SolveResult, camera_to_srgb: Option<&[[f64; 3]; 3]>) -> [Plane; 3] {
-    let (w, h) = (result.width, result.height);
-    let mut out: [Plane; 3] = std::array::from_fn(|_| Plane::new(w, h, 0.0));
+/// Pixel `i` of the albedo as `albedo.png` holds it before quantisation: through
+/// `camera_to_srgb` when given, clamped to [0, 1], black where unsolved.
+#[inline]
+pub fn display_albedo_pixel(
+    result: &SolveResult,
+    camera_to_srgb: Option<&[[f64; 3]; 3]>,
+    i: usize,
+) -> [f32; 3] {
+    if result.status[i] != PixelStatus::Solved {
+        return [0.0; 3];
+    }
     let [r, g, b] = &result.albedo;
-    let [or, og, ob] = &mut out;
-    let row = w.max(1);
-    or.data
-        .par_chunks_mut(row)
-        .zip(og.data.par_chunks_mut(row))
-        .zip(ob.data.par_chunks_mut(row))
-        .enumerate()
-        .for_each(|(y, ((or, og), ob))| {
-            for (x, ((or, og), ob)) in or.iter_mut().zip(og).zip(ob).enumerate() {
-                let i = y * row + x;
-                if result.status[i] != PixelStatus::Solved {
-                    continue;
-                }
-                let camera = [r.data[i], g.data[i], b.data[i]];
-                let display = camera_to_srgb.map_or(camera, |m| display_pixel(m, camera));
-                [*or, *og, *ob] = display.map(|v| v.clamp(0.0, 1.0));
-            }
-        });
-    out
+    let camera = [r.data[i], g.data[i], b.data[i]];
+    let display = camera_to_srgb.map_or(camera, |m| display_pixel(m, camera));
+    display.map(|v| v.clamp(0.0, 1.0))
 }
 
 /// The three planes through a 3x3 colour matrix (rows: output channels).

@@ -28,7 +28,7 @@ pub struct FullMaps<'a> {
     /// Height of the full-resolution maps in pixels.
     pub height: usize,
     /// Linear RGB albedo (display primaries, as `albedo.png` holds them).
-    pub albedo: Option<[Plane; 3]>,
+    pub albedo: Option<AlbedoMap<'a>>,
     /// World-frame normals, OpenGL convention; `None` where the map is missing. Borrowed from
     /// a solve still in memory ([`FullMaps::from_result`]).
     pub normal: Option<[Cow<'a, Plane>; 3]>,
@@ -37,6 +37,35 @@ pub struct FullMaps<'a> {
     pub confidence: Option<[Cow<'a, Plane>; 4]>,
     /// What could not be read, in words (file and cause).
     pub missing: Vec<String>,
+}
+
+/// The albedo the page shows: linear display primaries clamped to [0, 1], black where
+/// unsolved, as `albedo.png` holds it.
+pub enum AlbedoMap<'a> {
+    /// Read back from the solve folder's files.
+    Planes([Plane; 3]),
+    /// A solve still in memory, each pixel converted as it is read: display planes made first
+    /// were 193 MB of fresh memory at 16 MP, for two readers that each read a pixel once.
+    Solve {
+        /// The solve, whose albedo and pixel status are read.
+        result: &'a SolveResult,
+        /// Camera to display primaries, when the camera's are not sRGB's.
+        display_matrix: Option<[[f64; 3]; 3]>,
+    },
+}
+
+impl AlbedoMap<'_> {
+    /// Pixel `i`'s display albedo.
+    #[inline]
+    pub fn pixel(&self, i: usize) -> [f32; 3] {
+        match self {
+            AlbedoMap::Planes([r, g, b]) => [r.data[i], g.data[i], b.data[i]],
+            AlbedoMap::Solve {
+                result,
+                display_matrix,
+            } => crate::maps::encode::display_albedo_pixel(result, display_matrix.as_ref(), i),
+        }
+    }
 }
 
 /// Reads a 16-bit RGB PNG as three planes of `value(sample)`, one plane per channel, each
@@ -157,7 +186,7 @@ impl<'a> FullMaps<'a> {
         let mut maps = FullMaps {
             width,
             height,
-            albedo,
+            albedo: albedo.map(AlbedoMap::Planes),
             normal,
             confidence,
             missing,
@@ -185,7 +214,10 @@ impl<'a> FullMaps<'a> {
     ) -> FullMaps<'a> {
         let (w, h) = (result.width, result.height);
         // As `albedo.png` holds it: display primaries, clamped, black where unsolved.
-        let albedo = crate::maps::encode::display_albedo(result, display_matrix);
+        let albedo = AlbedoMap::Solve {
+            result,
+            display_matrix: display_matrix.copied(),
+        };
         let to_plane = |values: Vec<f32>| Plane::from_vec(w, h, values).expect("sized");
         let (status, fit) = rayon::join(
             || to_plane(result.status.par_iter().map(|&s| s as u8 as f32).collect()),
@@ -322,8 +354,9 @@ pub fn relight_textures(maps: &FullMaps, r: &Reduction) -> Option<RelightTexture
     type Sums = ([f64; 3], [f64; 3], usize);
     let add = |(a, n, count): &mut Sums, i: usize| {
         if maps.solved(i) {
+            let albedo = albedo.pixel(i);
             for c in 0..3 {
-                a[c] += albedo[c].data[i] as f64;
+                a[c] += albedo[c] as f64;
                 n[c] += normal[c].data[i] as f64;
             }
             *count += 1;

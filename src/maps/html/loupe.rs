@@ -6,7 +6,7 @@ use image::RgbImage;
 use jpeg_encoder::SamplingFactor;
 use rayon::prelude::*;
 
-use super::images::{self, byte, FullMaps, HuffmanTables};
+use super::images::{self, byte, AlbedoMap, FullMaps, HuffmanTables};
 use crate::plane::Plane;
 
 /// JPEG qualities the loupe tries at each sampling, best first. The floor keeps block
@@ -242,7 +242,14 @@ fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<RgbImag
                 // The table once, not per sample (`linear_to_srgb8` looks it up each call).
                 let table = crate::maps::srgb::srgb8();
                 let to_byte = |v| table.code(v) as u8;
-                sampled_view(a.each_ref(), maps.width, (w, h, step), to_byte)
+                match a {
+                    AlbedoMap::Planes(p) => {
+                        sampled_view(p.each_ref(), maps.width, (w, h, step), to_byte)
+                    }
+                    AlbedoMap::Solve { .. } => {
+                        sampled_pixels(|i| a.pixel(i), maps.width, (w, h, step), to_byte)
+                    }
+                }
             })
         },
         || {
@@ -287,6 +294,25 @@ fn sampled_view(
     RgbImage::from_raw(w as u32, h as u32, data).expect("the buffer fits the size")
 }
 
+/// [`sampled_view`] of the pixels `pixel(i)` gives (index `i` in rows `width` long).
+fn sampled_pixels(
+    pixel: impl Fn(usize) -> [f32; 3] + Sync,
+    width: usize,
+    (w, h, step): (usize, usize, usize),
+    to_byte: impl Fn(f32) -> u8 + Sync,
+) -> RgbImage {
+    let mut data = vec![0u8; w * h * 3];
+    if w > 0 {
+        data.par_chunks_mut(w * 3).enumerate().for_each(|(y, out)| {
+            let start = y * step * width;
+            for (x, px) in out.chunks_exact_mut(3).enumerate() {
+                px.copy_from_slice(&pixel(start + x * step).map(&to_byte));
+            }
+        });
+    }
+    RgbImage::from_raw(w as u32, h as u32, data).expect("the buffer fits the size")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -295,6 +321,51 @@ mod tests {
     /// The loupe's views at every pixel and at every 3rd pixel hold, pixel for pixel, what
     /// the page says they hold: the albedo's sRGB code by direct computation and the normal's
     /// `round((n * 0.5 + 0.5) * 255)`.
+    /// The albedo view of a solve in memory: each sampled pixel through the display matrix
+    /// (in double precision), clamped, as its sRGB code; unsolved pixels black.
+    #[test]
+    fn the_albedo_view_of_a_solve_converts_each_sampled_pixel() {
+        use crate::solve::{PixelStatus, SolveResult};
+        let (w, h) = (23, 9);
+        let mut result = SolveResult::new(w, h);
+        for i in 0..w * h {
+            for (c, plane) in result.albedo.iter_mut().enumerate() {
+                plane.data[i] = ((i * 13 + c * 7) % 29) as f32 / 25.0 - 0.05;
+            }
+            if i % 4 != 1 {
+                result.status[i] = PixelStatus::Solved;
+            }
+        }
+        let matrix = [[1.6, -0.4, -0.2], [-0.2, 1.5, -0.3], [0.0, -0.5, 1.5]];
+        let maps = FullMaps {
+            width: w,
+            height: h,
+            albedo: Some(AlbedoMap::Solve {
+                result: &result,
+                display_matrix: Some(matrix),
+            }),
+            normal: Some(result.normal.each_ref().map(Cow::Borrowed)),
+            confidence: None,
+            missing: Vec::new(),
+        };
+        for step in [1, 2] {
+            let albedo = full_views(&maps, step).0.unwrap();
+            for (x, y, px) in albedo.enumerate_pixels() {
+                let i = y as usize * step * w + x as usize * step;
+                let rgb = result.albedo.each_ref().map(|p| p.data[i] as f64);
+                let want = if result.status[i] == PixelStatus::Solved {
+                    matrix.map(|row| {
+                        let v = (row[0] * rgb[0] + row[1] * rgb[1] + row[2] * rgb[2]) as f32;
+                        crate::maps::srgb::srgb8_direct(v.clamp(0.0, 1.0)) as u8
+                    })
+                } else {
+                    [0; 3]
+                };
+                assert_eq!(px.0, want, "albedo at ({x}, {y}), step {step}");
+            }
+        }
+    }
+
     #[test]
     fn full_views_hold_each_sampled_pixel_converted() {
         let (w, h) = (37, 11);
@@ -313,7 +384,7 @@ mod tests {
         let maps = FullMaps {
             width: w,
             height: h,
-            albedo: Some(albedo.clone()),
+            albedo: Some(AlbedoMap::Planes(albedo.clone())),
             normal: Some(normal.clone()),
             confidence: None,
             missing: Vec::new(),
@@ -418,7 +489,7 @@ mod tests {
         FullMaps {
             width: w,
             height: h,
-            albedo: Some(albedo),
+            albedo: Some(AlbedoMap::Planes(albedo)),
             normal: Some(normal),
             confidence: None,
             missing: Vec::new(),
