@@ -24,11 +24,6 @@ pub const COUNTING: bool = cfg!(feature = "count-alloc");
 /// Allocations at least this large are backed by transparent huge pages.
 const HUGE_PAGE_MIN: usize = 4 << 20;
 
-/// Blocks at least this large glibc maps afresh from the kernel (the largest dynamic mmap
-/// threshold on 64-bit, and the fixed one [`keep_freed_memory`] sets), so calloc returns them
-/// untouched.
-const MMAP_THRESHOLD: usize = 32 << 20;
-
 /// The system allocator, with every allocation of at least `HUGE_PAGE_MIN` bytes advised to
 /// be backed by transparent huge pages ([`huge_pages`]).
 pub struct LargePageAlloc;
@@ -39,22 +34,7 @@ unsafe impl GlobalAlloc for LargePageAlloc {
     }
 
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
-        let size = layout.size();
-        if !(HUGE_PAGE_MIN..MMAP_THRESHOLD).contains(&size) {
-            // Small blocks stay 4 KiB; the C allocator maps blocks this large afresh, and
-            // calloc leaves their pages untouched (the kernel zeroes them on first touch), so
-            // the advice still comes before the first fault.
-            return advise_if_large(System.alloc_zeroed(layout), size);
-        }
-        // A block from an allocator arena: calloc would zero it itself, faulting every page
-        // in at 4 KiB before the advice could apply (a 16 MP plane of u16 is 31 MiB, just
-        // under the threshold: a tenth of a dn16 solve's CPU time was these faults). Advise
-        // first, then zero.
-        let p = advise_if_large(System.alloc(layout), size);
-        if !p.is_null() {
-            std::ptr::write_bytes(p, 0, size);
-        }
-        p
+        advise_if_large(System.alloc_zeroed(layout), layout.size())
     }
 
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
@@ -82,7 +62,7 @@ pub fn keep_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only changes the allocator's thresholds; it is safe at any time.
     unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD as i32);
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
         libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
         libc::mallopt(libc::M_TOP_PAD, 256 << 20);
     }
