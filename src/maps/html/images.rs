@@ -326,7 +326,7 @@ impl Reduction {
 
 /// An RGB image of `width x height` whose row `y` (`3 * width` bytes) `fill(scratch, y, row)`
 /// writes, rows in parallel, each thread with its own `scratch` (from `init`).
-fn par_image_rows<S>(
+pub(super) fn par_image_rows<S>(
     width: usize,
     height: usize,
     init: impl Fn() -> S + Sync + Send,

@@ -271,9 +271,11 @@ fn sampled_view(
     (w, h, step): (usize, usize, usize),
     to_byte: impl Fn(f32) -> u8 + Sync,
 ) -> RgbImage {
-    let mut data = vec![0u8; w * h * 3];
-    if w > 0 {
-        data.par_chunks_mut(w * 3).enumerate().for_each(|(y, out)| {
+    images::par_image_rows(
+        w,
+        h,
+        || (),
+        |_, y, out| {
             let start = y * step * width;
             let [r, g, b] = planes.map(|p| &p.data[start..start + width]);
             let rgb = r.iter().zip(g).zip(b);
@@ -289,9 +291,8 @@ fn sampled_view(
                     .zip(rgb.step_by(step))
                     .for_each(&mut put);
             }
-        });
-    }
-    RgbImage::from_raw(w as u32, h as u32, data).expect("the buffer fits the size")
+        },
+    )
 }
 
 /// [`sampled_view`] of the pixels `pixel(i)` gives (index `i` in rows `width` long).
@@ -301,16 +302,17 @@ fn sampled_pixels(
     (w, h, step): (usize, usize, usize),
     to_byte: impl Fn(f32) -> u8 + Sync,
 ) -> RgbImage {
-    let mut data = vec![0u8; w * h * 3];
-    if w > 0 {
-        data.par_chunks_mut(w * 3).enumerate().for_each(|(y, out)| {
+    images::par_image_rows(
+        w,
+        h,
+        || (),
+        |_, y, out| {
             let start = y * step * width;
             for (x, px) in out.chunks_exact_mut(3).enumerate() {
                 px.copy_from_slice(&pixel(start + x * step).map(&to_byte));
             }
-        });
-    }
-    RgbImage::from_raw(w as u32, h as u32, data).expect("the buffer fits the size")
+        },
+    )
 }
 
 #[cfg(test)]
