@@ -118,20 +118,30 @@ fn albedo_rows16_with<'a>(
     camera_to_srgb: Option<&'a [[f64; 3]; 3]>,
     code: impl Fn(f32) -> u16 + Sync + 'a,
 ) -> impl Fn(usize, &mut [u16]) + Sync + 'a {
-    let [r, g, b] = &result.albedo;
     let width = result.width;
     move |y, row| {
         for (x, px) in row.chunks_exact_mut(3).enumerate() {
-            let i = y * width + x;
-            if result.status[i] != PixelStatus::Solved {
-                px.fill(0);
-                continue;
+            match solved_display_pixel(result, camera_to_srgb, y * width + x) {
+                Some(display) => px.copy_from_slice(&display.map(&code)),
+                None => px.fill(0),
             }
-            let camera = [r.data[i], g.data[i], b.data[i]];
-            let display = camera_to_srgb.map_or(camera, |m| display_pixel(m, camera));
-            px.copy_from_slice(&display.map(&code));
         }
     }
+}
+
+/// Pixel `i`'s albedo through `camera_to_srgb` when given (not clamped); `None` where unsolved.
+#[inline]
+fn solved_display_pixel(
+    result: &SolveResult,
+    camera_to_srgb: Option<&[[f64; 3]; 3]>,
+    i: usize,
+) -> Option<[f32; 3]> {
+    if result.status[i] != PixelStatus::Solved {
+        return None;
+    }
+    let [r, g, b] = &result.albedo;
+    let camera = [r.data[i], g.data[i], b.data[i]];
+    Some(camera_to_srgb.map_or(camera, |m| display_pixel(m, camera)))
 }
 
 /// One pixel through a 3x3 colour matrix (rows: output channels), in double precision.
@@ -149,13 +159,8 @@ pub fn display_albedo_pixel(
     camera_to_srgb: Option<&[[f64; 3]; 3]>,
     i: usize,
 ) -> [f32; 3] {
-    if result.status[i] != PixelStatus::Solved {
-        return [0.0; 3];
-    }
-    let [r, g, b] = &result.albedo;
-    let camera = [r.data[i], g.data[i], b.data[i]];
-    let display = camera_to_srgb.map_or(camera, |m| display_pixel(m, camera));
-    display.map(|v| v.clamp(0.0, 1.0))
+    solved_display_pixel(result, camera_to_srgb, i)
+        .map_or([0.0; 3], |display| display.map(|v| v.clamp(0.0, 1.0)))
 }
 
 /// The three planes through a 3x3 colour matrix (rows: output channels).

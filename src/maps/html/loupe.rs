@@ -320,9 +320,6 @@ mod tests {
     use super::*;
     use std::borrow::Cow;
 
-    /// The loupe's views at every pixel and at every 3rd pixel hold, pixel for pixel, what
-    /// the page says they hold: the albedo's sRGB code by direct computation and the normal's
-    /// `round((n * 0.5 + 0.5) * 255)`.
     /// The albedo view of a solve in memory: each sampled pixel through the display matrix
     /// (in double precision), clamped, as its sRGB code; unsolved pixels black.
     #[test]
@@ -368,6 +365,9 @@ mod tests {
         }
     }
 
+    /// The loupe's views at every pixel and at every 3rd pixel hold, pixel for pixel, what
+    /// the page says they hold: the albedo's sRGB code by direct computation and the normal's
+    /// `round((n * 0.5 + 0.5) * 255)`.
     #[test]
     fn full_views_hold_each_sampled_pixel_converted() {
         let (w, h) = (37, 11);
