@@ -120,12 +120,52 @@ fn albedo_rows16_with<'a>(
 ) -> impl Fn(usize, &mut [u16]) + Sync + 'a {
     let width = result.width;
     move |y, row| {
-        for (x, px) in row.chunks_exact_mut(3).enumerate() {
-            match solved_display_pixel(result, camera_to_srgb, y * width + x) {
-                Some(display) => px.copy_from_slice(&display.map(&code)),
-                None => px.fill(0),
+        // A run of pixels at a time, through the colour matrix channel by channel, then
+        // quantised and interleaved (`code(0.0)` is 0: unsolved pixels are black).
+        let mut display = [[0f32; RUN]; 3];
+        for (k, pixels) in row.chunks_mut(3 * RUN).enumerate() {
+            let n = pixels.len() / 3;
+            let [r, g, b] = &mut display;
+            let (r, g, b) = (&mut r[..n], &mut g[..n], &mut b[..n]);
+            display_albedo_run(result, camera_to_srgb, y * width + k * RUN, [r, g, b]);
+            for (px, ((&r, &g), &b)) in pixels.chunks_exact_mut(3).zip(r.iter().zip(&*g).zip(&*b)) {
+                px.copy_from_slice(&[code(r), code(g), code(b)]);
             }
         }
+    }
+}
+
+/// Pixels per run of [`display_albedo_run`] in a PNG row.
+const RUN: usize = 256;
+
+/// The albedo of the pixels from `start` on, as many as `out`'s rows hold (one channel per
+/// row), through `camera_to_srgb` when given (not clamped); 0 where unsolved. The same values
+/// as [`solved_display_pixel`] pixel by pixel, in loops over slices that the compiler
+/// vectorises (pixel by pixel, the status test and the matrix were a call per pixel: a tenth
+/// of the 16 MP maps' encode time).
+pub fn display_albedo_run(
+    result: &SolveResult,
+    camera_to_srgb: Option<&[[f64; 3]; 3]>,
+    start: usize,
+    [out_r, out_g, out_b]: [&mut [f32]; 3],
+) {
+    let n = out_r.len();
+    let span = start..start + n;
+    let status = &result.status[span.clone()];
+    let [r, g, b] = result.albedo.each_ref().map(|p| &p.data[span.clone()]);
+    let pixels = out_r
+        .iter_mut()
+        .zip(out_g.iter_mut())
+        .zip(out_b.iter_mut())
+        .zip(status)
+        .zip(r.iter().zip(g).zip(b));
+    for ((((out_r, out_g), out_b), &status), ((&r, &g), &b)) in pixels {
+        let camera = [r, g, b];
+        let display = camera_to_srgb.map_or(camera, |m| display_pixel(m, camera));
+        let solved = status == PixelStatus::Solved;
+        *out_r = if solved { display[0] } else { 0.0 };
+        *out_g = if solved { display[1] } else { 0.0 };
+        *out_b = if solved { display[2] } else { 0.0 };
     }
 }
 
@@ -205,7 +245,8 @@ mod tests {
     /// first, then each sample through the sRGB curve, then unsolved pixels zeroed.
     #[test]
     fn albedo_rows16_are_the_display_planes_encoded_with_unsolved_pixels_black() {
-        let (w, h) = (37, 5);
+        // Rows over two runs of `display_albedo_run` long, the last one partial.
+        let (w, h) = (2 * RUN + 37, 3);
         let mut result = SolveResult::new(w, h);
         for i in 0..w * h {
             for (c, plane) in result.albedo.iter_mut().enumerate() {

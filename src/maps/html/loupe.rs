@@ -246,9 +246,7 @@ fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<RgbImag
                     AlbedoMap::Planes(p) => {
                         sampled_view(p.each_ref(), maps.width, (w, h, step), to_byte)
                     }
-                    AlbedoMap::Solve { .. } => {
-                        sampled_pixels(|i| a.pixel(i), maps.width, (w, h, step), to_byte)
-                    }
+                    AlbedoMap::Solve { .. } => sampled_pixels(a, maps.width, (w, h, step), to_byte),
                 }
             })
         },
@@ -263,56 +261,93 @@ fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<RgbImag
 
 /// Every `step`-th pixel of `planes` (rows `width` long) as a `w x h` image, each value through
 /// `to_byte`. Generic in `to_byte` so that the conversion inlines: at 16 MP through a `dyn Fn`
-/// it was a call per value, 48 million of them. Row by row over the planes' row slices, so
-/// that the inner loop indexes nothing it has to bounds-check per value.
+/// it was a call per value, 48 million of them.
 fn sampled_view(
     planes: [&Plane; 3],
     width: usize,
     (w, h, step): (usize, usize, usize),
     to_byte: impl Fn(f32) -> u8 + Sync,
 ) -> RgbImage {
-    images::par_image_rows(
-        w,
-        h,
-        || (),
-        |_, y, out| {
-            let start = y * step * width;
-            let [r, g, b] = planes.map(|p| &p.data[start..start + width]);
-            let rgb = r.iter().zip(g).zip(b);
-            let mut put = |(px, ((&r, &g), &b)): (&mut [u8], _)| {
-                px.copy_from_slice(&[to_byte(r), to_byte(g), to_byte(b)]);
-            };
-            // Every pixel (the loupe's first try, 16 MP at full resolution) without `step_by`,
-            // whose iterator the conversion loop does not vectorise through.
-            if step == 1 {
-                out.chunks_exact_mut(3).zip(rgb).for_each(&mut put);
-            } else {
-                out.chunks_exact_mut(3)
-                    .zip(rgb.step_by(step))
-                    .for_each(&mut put);
+    sampled_rows(
+        |start, channels| {
+            for (plane, channel) in planes.iter().zip(channels) {
+                let row = &plane.data[start..start + width];
+                // Every pixel (the loupe's first try, 16 MP at full resolution) without
+                // `step_by`, whose iterator a loop does not vectorise through.
+                if step == 1 {
+                    channel.copy_from_slice(&row[..channel.len()]);
+                } else {
+                    channel
+                        .iter_mut()
+                        .zip(row.iter().step_by(step))
+                        .for_each(|(c, &v)| *c = v);
+                }
             }
         },
+        width,
+        (w, h, step),
+        to_byte,
     )
 }
 
-/// [`sampled_view`] of the pixels `pixel(i)` gives (index `i` in rows `width` long).
+/// [`sampled_view`] of a solve's display albedo (`albedo`), read in runs at full resolution.
 fn sampled_pixels(
-    pixel: impl Fn(usize) -> [f32; 3] + Sync,
+    albedo: &AlbedoMap,
     width: usize,
     (w, h, step): (usize, usize, usize),
     to_byte: impl Fn(f32) -> u8 + Sync,
 ) -> RgbImage {
-    images::par_image_rows(
-        w,
-        h,
-        || (),
-        |_, y, out| {
-            let start = y * step * width;
-            for (x, px) in out.chunks_exact_mut(3).enumerate() {
-                px.copy_from_slice(&pixel(start + x * step).map(&to_byte));
+    sampled_rows(
+        |start, [r, g, b]| {
+            if step == 1 {
+                albedo.run_into(start, [r, g, b]);
+                return;
+            }
+            for (x, ((r, g), b)) in r.iter_mut().zip(g).zip(b).enumerate() {
+                [*r, *g, *b] = albedo.pixel(start + x * step);
             }
         },
+        width,
+        (w, h, step),
+        to_byte,
     )
+}
+
+/// A `w x h` image whose row `y` holds the values `values(start, channels)` puts in the three
+/// channel rows (`start`: the index of the row's first sampled pixel), each through `to_byte`.
+///
+/// A row goes channel by channel, values, then bytes, then interleaved, each step a loop over
+/// plain slices: converting and interleaving pixel by pixel, the compiler called the
+/// conversion per pixel, not inlined, with a branch per value on its rounding (half of them
+/// mispredicted); the 16 MP normal view took 0.22 s, more than the albedo's colour matrix
+/// and sRGB table.
+fn sampled_rows(
+    values: impl Fn(usize, [&mut [f32]; 3]) + Sync,
+    width: usize,
+    (w, h, step): (usize, usize, usize),
+    to_byte: impl Fn(f32) -> u8 + Sync,
+) -> RgbImage {
+    let scratch = || (vec![0f32; 3 * w], vec![0u8; 3 * w]);
+    images::par_image_rows(w, h, scratch, |(floats, bytes), y, out| {
+        let [r, g, b] = split3(floats);
+        values(y * step * width, [r, g, b]);
+        for (byte, &v) in bytes.iter_mut().zip(floats.iter()) {
+            *byte = to_byte(v);
+        }
+        let (r, gb) = bytes.split_at(w);
+        let (g, b) = gb.split_at(w);
+        for (px, ((&r, &g), &b)) in out.chunks_exact_mut(3).zip(r.iter().zip(g).zip(b)) {
+            px.copy_from_slice(&[r, g, b]);
+        }
+    })
+}
+
+/// A buffer of three equal rows as the three rows.
+fn split3<T>(buffer: &mut [T]) -> [&mut [T]; 3] {
+    let w = buffer.len() / 3;
+    let (r, gb) = buffer.split_at_mut(w);
+    let (g, b) = gb.split_at_mut(w);
+    [r, g, b]
 }
 
 #[cfg(test)]
