@@ -140,7 +140,7 @@ const RUN: usize = 256;
 
 /// The albedo of the pixels from `start` on, as many as `out`'s rows hold (one channel per
 /// row), through `camera_to_srgb` when given (not clamped); 0 where unsolved. The same values
-/// as [`solved_display_pixel`] pixel by pixel, in loops over slices that the compiler
+/// as `solved_display_pixel` pixel by pixel, in loops over slices that the compiler
 /// vectorises (pixel by pixel, the status test and the matrix were a call per pixel: a tenth
 /// of the 16 MP maps' encode time).
 pub fn display_albedo_run(
