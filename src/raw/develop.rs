@@ -11,7 +11,7 @@ use rayon::prelude::*;
 
 use super::decode::{decode_raw_keeping, DecodedRaw, RawMeta};
 use super::hue::Backing;
-use super::linear::{decode_dn_frame, Levels};
+use super::linear::{decode_dn_frame, Levels, SizedFrame};
 use super::mosaic::{subtract_dark, DarkFrame, LinearMosaic, Resolution, SharedDark};
 use super::pass::{self, LinearPass, SampleCounts};
 use super::shading::ShadingField;
@@ -184,6 +184,19 @@ pub enum Coded {
 }
 
 impl Coded {
+    /// A decoded dn16 frame (`decode_dn_frame`), linearised with `levels`.
+    pub fn dn16((frame, stored_size): SizedFrame, levels: &Levels) -> Coded {
+        Coded::Done(Box::new(DecodedFrame {
+            data: FrameData::Rgb(frame),
+            meta: None,
+            levels: *levels,
+            cfa_pattern: None,
+            stored_size,
+            camera_to_srgb: None,
+            counts: SampleCounts::default(),
+        }))
+    }
+
     /// The size of the stored image (RAW: the mosaic).
     pub fn stored_size(&self) -> (usize, usize) {
         match self {
@@ -208,18 +221,7 @@ pub fn decode_codec(
             let decoded = busy.time(DN16_DECODE_STAGE, || {
                 decode_dn_frame(&bytes, path, dn16_levels)
             });
-            let coded = decoded.map(|(frame, (width, height))| {
-                Coded::Done(Box::new(DecodedFrame {
-                    data: FrameData::Rgb(frame),
-                    meta: None,
-                    levels: *dn16_levels,
-                    cfa_pattern: None,
-                    stored_size: (width, height),
-                    camera_to_srgb: None,
-                    counts: SampleCounts::default(),
-                }))
-            });
-            (coded, bytes)
+            (decoded.map(|frame| Coded::dn16(frame, dn16_levels)), bytes)
         }
         Encoding::Raw => {
             let (raw, bytes) = busy.time("decode", || decode_raw_keeping(bytes, path));

@@ -165,7 +165,17 @@ fn png_rows_to_frame(
     if !bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
         return None;
     }
-    let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
+    png_rows_from(std::io::Cursor::new(bytes), levels)
+}
+
+/// A plain 16-bit RGB PNG frame decoded from `reader` row by row as it reads (see
+/// [`decode_dn_frame`]), with its size; `None` for anything else, which the caller then reads
+/// whole (how much of `reader` was read is not said).
+pub fn png_rows_from(
+    reader: impl std::io::BufRead + std::io::Seek,
+    levels: &Levels,
+) -> Option<std::result::Result<SizedFrame, png::DecodingError>> {
+    let mut decoder = png::Decoder::new(reader);
     decoder.set_transformations(png::Transformations::IDENTITY);
     // A header the png crate refuses goes the long way, which reports it.
     let mut reader = decoder.read_info().ok()?;

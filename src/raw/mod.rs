@@ -30,10 +30,14 @@ pub use develop::{
     below_black_floor, check_consistent, check_plausible, decode_codec, decode_frame,
     develop_frames, develop_frames_timed, finish_decode, Coded, DecodeInfo, DecodedFrame,
     DevelopOptions, Encoding, FrameData, RawPrep, BINNING_PASS_STAGE, DARK_STAGE, DECODE_STAGES,
+    DN16_DECODE_STAGE,
 };
 pub use dng::{encode_dng, DngStorage};
 pub use hue::Backing;
-pub use linear::{decode_dn_frame, decode_dn_image, encode_png16, read_dn_image, DnImage, Levels};
+pub use linear::{
+    decode_dn_frame, decode_dn_image, encode_png16, png_rows_from, read_dn_image, DnImage, Levels,
+    SizedFrame,
+};
 pub use mosaic::{
     bilinear, subtract_dark, DarkFrame, LinearMosaic, Mosaic, Resolution, BLUE, GREEN, RED,
     SATURATION_MARGIN,
