@@ -58,7 +58,10 @@ impl DnImage {
 /// linearises them); a pixel is saturated where any channel reached the white level.
 struct DnRows {
     samples: DnSamples,
-    saturated: Mask,
+    /// Made at the first row with a saturated pixel, its flags written for such rows only: a
+    /// frame that clips nowhere (the usual one) gets none, where a mask written whole was 16 MB
+    /// of fresh memory per 16 MP frame, all of it `false`.
+    saturated: Option<Mask>,
     /// The smallest DN at or above the white level (65536 where none is): a whole DN `v` has
     /// reached the white level exactly when `v >= saturated_from`.
     saturated_from: u32,
@@ -68,7 +71,7 @@ impl DnRows {
     fn new(width: usize, height: usize, levels: &Levels) -> Self {
         DnRows {
             samples: DnSamples::new(width, height, levels.black, levels.white),
-            saturated: Mask::new(width, height, false),
+            saturated: None,
             saturated_from: saturated_from(levels.white),
         }
     }
@@ -83,11 +86,29 @@ impl DnRows {
         let outputs = r[at.clone()]
             .iter_mut()
             .zip(&mut g[at.clone()])
-            .zip(&mut b[at.clone()])
-            .zip(&mut self.saturated.data[at]);
-        for ((((r, g), b), clipped), px) in outputs.zip(pixels) {
-            *clipped = reached_white(px, self.saturated_from);
+            .zip(&mut b[at]);
+        let (mut clipped, mut n) = (false, 0);
+        for (((r, g), b), px) in outputs.zip(pixels) {
+            clipped |= reached_white(px, self.saturated_from);
             [*r, *g, *b] = px;
+            n += 1;
+        }
+        if clipped {
+            self.flag_row(y, n);
+        }
+    }
+
+    /// Writes the saturation flags of row `y`'s first `n` pixels from their stored samples,
+    /// making the mask first.
+    #[cold]
+    fn flag_row(&mut self, y: usize, n: usize) {
+        let (w, h) = (self.samples.width, self.samples.height);
+        let mask = self.saturated.get_or_insert_with(|| Mask::new(w, h, false));
+        let at = y * w..y * w + n;
+        let [r, g, b] = &self.samples.dn;
+        let samples = r[at.clone()].iter().zip(&g[at.clone()]).zip(&b[at.clone()]);
+        for (flag, ((&r, &g), &b)) in mask.data[at].iter_mut().zip(samples) {
+            *flag = reached_white([r, g, b], self.saturated_from);
         }
     }
 
@@ -100,10 +121,10 @@ impl DnRows {
         let n = w.min(data.len() / 6);
         let at = y * w..y * w + n;
         let [r, g, b] = &mut self.samples.dn;
-        let (r, g, b) = (&mut r[at.clone()], &mut g[at.clone()], &mut b[at.clone()]);
-        let clipped = &mut self.saturated.data[at];
+        let (r, g, b) = (&mut r[at.clone()], &mut g[at.clone()], &mut b[at]);
         let data = &data[..6 * n];
         let from = self.saturated_from;
+        let mut clipped = false;
         for k in 0..n {
             let px = &data[6 * k..6 * k + 6];
             let v = [
@@ -112,12 +133,15 @@ impl DnRows {
                 u16::from_be_bytes([px[4], px[5]]),
             ];
             [r[k], g[k], b[k]] = v;
-            clipped[k] = reached_white(v, from);
+            clipped |= reached_white(v, from);
+        }
+        if clipped {
+            self.flag_row(y, n);
         }
     }
 
     fn finish(self) -> LightFrame {
-        LightFrame::from_dn(self.samples, Some(self.saturated))
+        LightFrame::from_dn(self.samples, self.saturated)
     }
 }
 
@@ -353,6 +377,33 @@ mod tests {
             frame.rgb.r.data[1] < 0.0,
             "below black stays negative (noise)"
         );
+    }
+
+    /// A frame that clips nowhere gets no mask (none is made); one clipped pixel in a PNG's
+    /// last row makes one, flagging that pixel only.
+    #[test]
+    fn a_mask_is_made_only_for_a_frame_that_clips() {
+        let levels = Levels {
+            black: 100.0,
+            white: 1000.0,
+        };
+        let mut image = DnImage {
+            width: 3,
+            height: 2,
+            data: vec![500; 18],
+        };
+        let path = Path::new("L00.png");
+        let decode = |image: &DnImage| {
+            let bytes = encode_png16(image).unwrap();
+            decode_dn_frame(&bytes, path, &levels).unwrap().0
+        };
+        assert!(decode(&image).saturated.is_none());
+        assert!(image.to_light_frame(&levels).saturated.is_none());
+        image.data[3 * 4 + 2] = 1000;
+        let frame = decode(&image);
+        let flags = &frame.saturated.as_ref().expect("a mask").data;
+        assert_eq!(flags, &vec![false, false, false, false, true, false]);
+        assert_eq!(frame.saturated, image.to_light_frame(&levels).saturated);
     }
 
     #[test]
