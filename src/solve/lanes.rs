@@ -258,7 +258,17 @@ pub fn own_channel(pattern: [[u8; 2]; 2], (x, y): (usize, usize)) -> [u8; LANES]
 #[inline(always)]
 pub fn own_channels(pattern: [[u8; 2]; 2], (x, y): (usize, usize)) -> [[bool; LANES]; 3] {
     let own = own_channel(pattern, (x, y));
-    std::array::from_fn(|c| own.map(|o| o as usize == c))
+    // Plain loops, not `array::map`: the compiler is free to call a `map` out of line, and
+    // did once an unrelated change moved its inlining budget (the 16 MP solve stage then took
+    // 0.9 s instead of 0.6, a call per chunk and channel compiled without the kernel's vector
+    // features).
+    let mut masks = [[false; LANES]; 3];
+    for (c, mask) in masks.iter_mut().enumerate() {
+        for (m, &o) in mask.iter_mut().zip(&own) {
+            *m = o as usize == c;
+        }
+    }
+    masks
 }
 
 /// The R, G, B values of the `LANES` pixels of `frame` from index `i0` (columns `x`.. of row
