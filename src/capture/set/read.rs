@@ -1,9 +1,13 @@
-//! Reading a frame file whole while hashing it (the manifest's SHA-256 check).
+//! Reading a frame file while hashing it (the manifest's SHA-256 check): whole, or as a
+//! decoder reads it.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+use super::{checked_inside, CaptureSet};
+use crate::capture::manifest::FrameEntry;
 use crate::error::{Error, Result};
+use crate::raw::{decode_codec, Coded, Encoding, DN16_DECODE_STAGE};
 use crate::timing::Busy;
 
 /// Reads `path` whole into `bytes` (emptied first; its memory is reused), hashing each chunk
@@ -154,6 +158,73 @@ impl std::io::Seek for HashingReader {
         }
         self.file.seek(pos)
     }
+}
+
+impl CaptureSet {
+    /// [`Self::read_frame_bytes`] into `buffer`, hashing while reading, the time of each going
+    /// to `busy`.
+    pub(super) fn read_frame_bytes_timed(
+        &self,
+        entry: &FrameEntry,
+        busy: &Busy,
+        buffer: Vec<u8>,
+    ) -> Result<(PathBuf, Vec<u8>)> {
+        let path = checked_inside(&self.dir, &entry.file)?;
+        let (bytes, actual) = read_and_hash(&path, busy, buffer)?;
+        check_hash(&path, entry, &actual)?;
+        Ok((path, bytes))
+    }
+
+    /// Decodes a dn16 frame as it is read and hashed (no whole-file buffer, see
+    /// [`HashingReader`]); the hash is checked before the decode's outcome is looked at, so a
+    /// changed file is named as such even where it also fails to decode. A frame that is not a
+    /// plain 16-bit RGB PNG (a TIFF) is read whole and decoded the long way.
+    pub(super) fn decode_dn16_streamed(
+        &self,
+        entry: &FrameEntry,
+        levels: &crate::raw::Levels,
+        busy: &Busy,
+    ) -> Result<(PathBuf, Coded)> {
+        let path = checked_inside(&self.dir, &entry.file)?;
+        let mut reader = HashingReader::open(&path)?;
+        let start = std::time::Instant::now();
+        let decoded = crate::raw::png_rows_from(&mut reader, levels);
+        busy.add(
+            DN16_DECODE_STAGE,
+            start.elapsed().saturating_sub(reader.own_time()),
+        );
+        let actual = match reader.finish(&path, busy)? {
+            Some(actual) => actual,
+            None => read_and_hash(&path, busy, Vec::new())?.1,
+        };
+        check_hash(&path, entry, &actual)?;
+        match decoded {
+            Some(frame) => {
+                let frame = frame.map_err(|e| Error::image(&path, e))?;
+                Ok((path, Coded::dn16(frame, levels)))
+            }
+            None => {
+                let (path, bytes) = self.read_frame_bytes_timed(entry, busy, Vec::new())?;
+                let (coded, _) = decode_codec(bytes, &path, Encoding::Dn16, levels, busy);
+                Ok((path, coded?))
+            }
+        }
+    }
+}
+
+/// Fails naming `path` where its SHA-256 (`actual`) is not the one `entry` recorded.
+fn check_hash(path: &Path, entry: &FrameEntry, actual: &str) -> Result<()> {
+    if actual == entry.sha256 {
+        return Ok(());
+    }
+    Err(Error::image(
+        path,
+        format!(
+            "SHA-256 mismatch: manifest says {}, file is {actual}; the file was changed or \
+             damaged after capture",
+            entry.sha256
+        ),
+    ))
 }
 
 #[cfg(test)]

@@ -9,12 +9,16 @@
 //! left. `psscan report --render-light` renders the relight on the CPU ([`relight::render`])
 //! from the same textures, for comparison with the canvas.
 
+mod class_counts;
 pub mod derived;
 pub mod frames;
 pub mod images;
 mod loupe;
 pub mod relight;
 mod template;
+mod textures;
+
+use class_counts::class_counts;
 mod warnings;
 
 pub use template::escape;
@@ -107,7 +111,7 @@ pub fn relight_textures(dir: &Path) -> Result<RelightTextures> {
     let report = read_report(dir).ok();
     let maps = FullMaps::read(dir, normal_convention(report.as_ref()));
     let reduction = Reduction::for_size(maps.width, maps.height);
-    images::relight_textures(&maps, &reduction).ok_or_else(|| {
+    textures::relight_textures(&maps, &reduction).ok_or_else(|| {
         Error::Unsupported(format!(
             "{}: no relight without the albedo and normal maps ({})",
             dir.display(),
@@ -200,65 +204,6 @@ pub const FIT_CLASSES: [(&str, [u8; 3], &str); 3] = [
     ),
     ("sheen", [190, 80, 220], "fitted with the sheen lobe"),
 ];
-
-/// How many pixels of `plane` hold each class below `n` (the solved ones only, with
-/// `solved_only`), counted on every core in blocks of plain loops over slices (a fold over 16 M
-/// indexed values, moving its count vector through every step, took a seventh of the page's
-/// time). Four counts per class, taken in turn: one count bumped by every pixel waits on its
-/// own last store, and nearly every pixel is in the same class.
-fn class_counts(
-    plane: &crate::plane::Plane,
-    maps: &FullMaps,
-    solved_only: bool,
-    n: usize,
-) -> Vec<usize> {
-    use rayon::prelude::*;
-    const BLOCK: usize = 1 << 16;
-    let status = maps
-        .confidence
-        .as_ref()
-        .filter(|_| solved_only)
-        .map(|c| &c[0].data[..]);
-    let count_block = |(b, values): (usize, &[f32])| {
-        let mut counts = [[0usize; 256]; 4];
-        let start = b * BLOCK;
-        let mut count = |j: usize, v: f32, kept: bool| {
-            // `v as usize` saturates: NaN and negative values are 0, so they are tested first.
-            counts[j % 4][images::class_of(v)] += (kept && v >= 0.0) as usize;
-        };
-        match status {
-            Some(status) => {
-                let status = &status[start..start + values.len()];
-                for (j, (&v, &s)) in values.iter().zip(status).enumerate() {
-                    count(j, v, s == 0.0);
-                }
-            }
-            None => {
-                for (j, &v) in values.iter().enumerate() {
-                    count(j, v, true);
-                }
-            }
-        }
-        let mut total = [0usize; 256];
-        for part in &counts {
-            total.iter_mut().zip(part).for_each(|(t, c)| *t += c);
-        }
-        total
-    };
-    let totals = plane
-        .data
-        .par_chunks(BLOCK)
-        .enumerate()
-        .map(count_block)
-        .reduce(
-            || [0usize; 256],
-            |mut a, b| {
-                a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
-                a
-            },
-        );
-    totals[..n].to_vec()
-}
 
 fn legend_classes(classes: &[(&str, [u8; 3], &str)], counts: &[usize]) -> String {
     let total: usize = counts.iter().sum::<usize>().max(1);
@@ -483,7 +428,7 @@ fn build_parts(
     // The display-size parts are independent of each other: built side by side.
     let ((textures, (map_html, derived_maps)), (classes, (frames, frames_data))) = rayon::join(
         || {
-            let textures = images::relight_textures(&maps, &r);
+            let textures = textures::relight_textures(&maps, &r);
             let map_html = map_parts(&maps, textures.as_ref(), derived.as_deref());
             (textures, map_html)
         },
