@@ -139,10 +139,9 @@ fn albedo_rows16_with<'a>(
 const RUN: usize = 256;
 
 /// The albedo of the pixels from `start` on, as many as `out`'s rows hold (one channel per
-/// row), through `camera_to_srgb` when given (not clamped); 0 where unsolved. The same values
-/// as `solved_display_pixel` pixel by pixel, in loops over slices that the compiler
-/// vectorises (pixel by pixel, the status test and the matrix were a call per pixel: a tenth
-/// of the 16 MP maps' encode time).
+/// row), through `camera_to_srgb` when given (not clamped); 0 where unsolved. In loops over
+/// slices that the compiler vectorises (pixel by pixel, the status test and the matrix were a
+/// call per pixel: a tenth of the 16 MP maps' encode time).
 pub fn display_albedo_run(
     result: &SolveResult,
     camera_to_srgb: Option<&[[f64; 3]; 3]>,
@@ -169,38 +168,11 @@ pub fn display_albedo_run(
     }
 }
 
-/// Pixel `i`'s albedo through `camera_to_srgb` when given (not clamped); `None` where unsolved.
-#[inline]
-fn solved_display_pixel(
-    result: &SolveResult,
-    camera_to_srgb: Option<&[[f64; 3]; 3]>,
-    i: usize,
-) -> Option<[f32; 3]> {
-    if result.status[i] != PixelStatus::Solved {
-        return None;
-    }
-    let [r, g, b] = &result.albedo;
-    let camera = [r.data[i], g.data[i], b.data[i]];
-    Some(camera_to_srgb.map_or(camera, |m| display_pixel(m, camera)))
-}
-
 /// One pixel through a 3x3 colour matrix (rows: output channels), in double precision.
 #[inline]
 fn display_pixel(m: &[[f64; 3]; 3], rgb: [f32; 3]) -> [f32; 3] {
     let v = rgb.map(f64::from);
     std::array::from_fn(|c| (m[c][0] * v[0] + m[c][1] * v[1] + m[c][2] * v[2]) as f32)
-}
-
-/// Pixel `i` of the albedo as `albedo.png` holds it before quantisation: through
-/// `camera_to_srgb` when given, clamped to [0, 1], black where unsolved.
-#[inline]
-pub fn display_albedo_pixel(
-    result: &SolveResult,
-    camera_to_srgb: Option<&[[f64; 3]; 3]>,
-    i: usize,
-) -> [f32; 3] {
-    solved_display_pixel(result, camera_to_srgb, i)
-        .map_or([0.0; 3], |display| display.map(|v| v.clamp(0.0, 1.0)))
 }
 
 /// The three planes through a 3x3 colour matrix (rows: output channels).

@@ -104,8 +104,7 @@ impl HashingReader {
             }
             self.consume(n);
         }
-        busy.add(READ_STAGE, self.reading);
-        busy.add(HASH_STAGE, self.hashing);
+        self.record(busy);
         Ok(self.in_order.then(|| {
             self.hasher
                 .finalize()
@@ -118,6 +117,12 @@ impl HashingReader {
     /// The time spent reading and hashing so far.
     pub(super) fn own_time(&self) -> Duration {
         self.reading + self.hashing
+    }
+
+    /// Adds the read and hash time so far to `busy`'s [`READ_STAGE`] and [`HASH_STAGE`].
+    pub(super) fn record(&self, busy: &Busy) {
+        busy.add(READ_STAGE, self.reading);
+        busy.add(HASH_STAGE, self.hashing);
     }
 }
 
@@ -178,7 +183,8 @@ impl CaptureSet {
     /// Decodes a dn16 frame as it is read and hashed (no whole-file buffer, see
     /// [`HashingReader`]); the hash is checked before the decode's outcome is looked at, so a
     /// changed file is named as such even where it also fails to decode. A frame that is not a
-    /// plain 16-bit RGB PNG (a TIFF) is read whole and decoded the long way.
+    /// plain 16-bit RGB PNG (a TIFF) is read whole and decoded the long way, which checks the
+    /// hash first too: the stream is left where the PNG decoder gave up, not read on to hash.
     pub(super) fn decode_dn16_streamed(
         &self,
         entry: &FrameEntry,
@@ -193,22 +199,19 @@ impl CaptureSet {
             DN16_DECODE_STAGE,
             start.elapsed().saturating_sub(reader.own_time()),
         );
+        let Some(decoded) = decoded else {
+            reader.record(busy);
+            let (path, bytes) = self.read_frame_bytes_timed(entry, busy, Vec::new())?;
+            let (coded, _) = decode_codec(bytes, &path, Encoding::Dn16, levels, busy);
+            return Ok((path, coded?));
+        };
         let actual = match reader.finish(&path, busy)? {
             Some(actual) => actual,
             None => read_and_hash(&path, busy, Vec::new())?.1,
         };
         check_hash(&path, entry, &actual)?;
-        match decoded {
-            Some(frame) => {
-                let frame = frame.map_err(|e| Error::image(&path, e))?;
-                Ok((path, Coded::dn16(frame, levels)))
-            }
-            None => {
-                let (path, bytes) = self.read_frame_bytes_timed(entry, busy, Vec::new())?;
-                let (coded, _) = decode_codec(bytes, &path, Encoding::Dn16, levels, busy);
-                Ok((path, coded?))
-            }
-        }
+        let frame = decoded.map_err(|e| Error::image(&path, e))?;
+        Ok((path, Coded::dn16(frame, levels)))
     }
 }
 

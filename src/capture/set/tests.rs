@@ -158,3 +158,33 @@ fn a_folder_without_manifest_is_not_a_set() {
         .to_string();
     assert!(err.contains("not a capture set"), "{err}");
 }
+
+/// A dn16 frame that is not a PNG (a 16-bit TIFF) takes the whole-file path: it reads back
+/// as the PNG frame does, and a changed one is named as changed.
+#[test]
+fn a_tiff_frame_reads_back_and_a_changed_one_is_named() {
+    let tiff = |value: u16| {
+        let image =
+            image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(2, 2, vec![value; 12]).unwrap();
+        let mut bytes = Vec::new();
+        image::DynamicImage::ImageRgb16(image)
+            .write_to(
+                &mut std::io::Cursor::new(&mut bytes),
+                image::ImageFormat::Tiff,
+            )
+            .unwrap();
+        bytes
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let mut w = write_set(dir.path(), 3);
+    w.add_frame(FrameKind::Light, Some(1), "L01.tif", &tiff(1001))
+        .unwrap();
+    let set = CaptureSet::open(dir.path(), None).unwrap();
+    let frames = set.load_frames(&Silent).unwrap();
+    let expected = (1001.0 - 600.0) / 15000.0;
+    assert!((frames.lights[1].rgb.g.data[3] as f64 - expected).abs() < 1e-7);
+
+    std::fs::write(dir.path().join("L01.tif"), tiff(2000)).unwrap();
+    let err = set.load_frames(&Silent).unwrap_err().to_string();
+    assert!(err.contains("L01.tif") && err.contains("SHA-256"), "{err}");
+}

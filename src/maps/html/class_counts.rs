@@ -1,6 +1,6 @@
 //! The page's class legends count: how many pixels hold each status or fit class.
 
-use super::images::{self, FullMaps};
+use super::images::{self, FullMaps, SOLVED};
 
 /// How many pixels of `plane` hold each class below `n` (the solved ones only, with
 /// `solved_only`), counted on every core in blocks of plain loops over slices (a fold over 16 M
@@ -15,11 +15,7 @@ pub(super) fn class_counts(
 ) -> Vec<usize> {
     use rayon::prelude::*;
     const BLOCK: usize = 1 << 16;
-    let status = maps
-        .confidence
-        .as_ref()
-        .filter(|_| solved_only)
-        .map(|c| &c[0].data[..]);
+    let status = maps.status().filter(|_| solved_only);
     let count_block = |(b, values): (usize, &[f32])| {
         let mut counts = [[0usize; 256]; 4];
         let start = b * BLOCK;
@@ -31,7 +27,7 @@ pub(super) fn class_counts(
             Some(status) => {
                 let status = &status[start..start + values.len()];
                 for (j, (&v, &s)) in values.iter().zip(status).enumerate() {
-                    count(j, v, s == 0.0);
+                    count(j, v, s == SOLVED);
                 }
             }
             None => {

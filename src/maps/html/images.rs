@@ -38,6 +38,9 @@ pub struct FullMaps<'a> {
     pub missing: Vec<String>,
 }
 
+/// A solved pixel's value in the confidence map's status plane.
+pub const SOLVED: f32 = crate::solve::PixelStatus::Solved as u8 as f32;
+
 /// The albedo the page shows: linear display primaries clamped to [0, 1], black where
 /// unsolved, as `albedo.png` holds it.
 pub enum AlbedoMap<'a> {
@@ -54,16 +57,11 @@ pub enum AlbedoMap<'a> {
 }
 
 impl AlbedoMap<'_> {
-    /// Pixel `i`'s display albedo.
-    #[inline]
+    /// Pixel `i`'s display albedo: [`AlbedoMap::run_into`] of that one pixel.
     pub fn pixel(&self, i: usize) -> [f32; 3] {
-        match self {
-            AlbedoMap::Planes([r, g, b]) => [r.data[i], g.data[i], b.data[i]],
-            AlbedoMap::Solve {
-                result,
-                display_matrix,
-            } => crate::maps::encode::display_albedo_pixel(result, display_matrix.as_ref(), i),
-        }
+        let [mut r, mut g, mut b] = [[0f32]; 3];
+        self.run_into(i, [&mut r, &mut g, &mut b]);
+        [r[0], g[0], b[0]]
     }
 
     /// The display albedo of the pixels from `start` on, as many as `out`'s rows hold, one
@@ -290,12 +288,16 @@ impl<'a> FullMaps<'a> {
         }
     }
 
-    /// Whether pixel `i` holds a solved normal (status 0; every pixel when the confidence
-    /// map is missing).
+    /// The status plane's values (a `PixelStatus` as a number, [`SOLVED`] where solved);
+    /// `None` where the confidence map is missing.
+    pub fn status(&self) -> Option<&[f32]> {
+        self.confidence.as_ref().map(|c| &c[0].data[..])
+    }
+
+    /// Whether pixel `i` holds a solved normal (status [`SOLVED`]; every pixel when the
+    /// confidence map is missing).
     pub fn solved(&self, i: usize) -> bool {
-        self.confidence
-            .as_ref()
-            .map_or(true, |c| c[0].data[i] == 0.0)
+        self.status().map_or(true, |s| s[i] == SOLVED)
     }
 }
 

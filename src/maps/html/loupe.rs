@@ -241,13 +241,7 @@ fn full_views(maps: &FullMaps, step: usize) -> (Option<RgbImage>, Option<RgbImag
             maps.albedo.as_ref().map(|a| {
                 // The table once, not per sample (`linear_to_srgb8` looks it up each call).
                 let table = crate::maps::srgb::srgb8();
-                let to_byte = |v| table.code(v) as u8;
-                match a {
-                    AlbedoMap::Planes(p) => {
-                        sampled_view(p.each_ref(), maps.width, (w, h, step), to_byte)
-                    }
-                    AlbedoMap::Solve { .. } => sampled_pixels(a, maps.width, (w, h, step), to_byte),
-                }
+                albedo_view(a, maps.width, (w, h, step), |v| table.code(v) as u8)
             })
         },
         || {
@@ -290,8 +284,8 @@ fn sampled_view(
     )
 }
 
-/// [`sampled_view`] of a solve's display albedo (`albedo`), read in runs at full resolution.
-fn sampled_pixels(
+/// [`sampled_view`] of the display albedo, read in runs at full resolution.
+fn albedo_view(
     albedo: &AlbedoMap,
     width: usize,
     (w, h, step): (usize, usize, usize),

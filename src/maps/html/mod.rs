@@ -17,9 +17,9 @@ mod loupe;
 pub mod relight;
 mod template;
 mod textures;
+mod warnings;
 
 use class_counts::class_counts;
-mod warnings;
 
 pub use template::escape;
 use template::fill;

@@ -4,7 +4,7 @@
 use image::RgbImage;
 use rayon::prelude::*;
 
-use super::images::{byte, AlbedoMap, FullMaps, Reduction};
+use super::images::{byte, AlbedoMap, FullMaps, Reduction, SOLVED};
 use super::relight::{linear_to_srgb8, RelightTextures};
 
 /// One display row's full-resolution pixels (the `factor` rows of its blocks, one run of
@@ -23,10 +23,10 @@ impl BlockRows {
         let (y0, y1) = (y * r.factor, ((y + 1) * r.factor).min(maps.height));
         let (base, len) = (y0 * w, (y1 - y0) * w);
         self.solved.clear();
-        match maps.confidence.as_ref() {
-            Some(c) => self
+        match maps.status() {
+            Some(status) => self
                 .solved
-                .extend(c[0].data[base..base + len].iter().map(|&s| s == 0.0)),
+                .extend(status[base..base + len].iter().map(|&s| s == SOLVED)),
             None => self.solved.resize(len, true),
         }
         for channel in &mut self.albedo {
