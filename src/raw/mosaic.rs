@@ -680,15 +680,20 @@ mod tests {
         let rows = [row(), row()];
         for pattern in ["RGGB", "BGGR", "GRBG", "GBRG"] {
             let pattern = mosaic(2, 2, pattern).pattern;
-            let run = |bin: &dyn Fn([&mut [f32]; 3], &mut [bool])| {
+            type Binner = fn([[u8; 2]; 2], [&SampleRow; 2], [&mut [f32]; 3], &mut [bool]);
+            let run = |bin: Binner| {
                 let (mut r, mut g, mut b, mut sat) =
                     (vec![7.0; n], vec![7.0; n], vec![7.0; n], vec![false; n]);
-                bin([&mut r, &mut g, &mut b], &mut sat);
+                bin(
+                    pattern,
+                    [&rows[0], &rows[1]],
+                    [&mut r, &mut g, &mut b],
+                    &mut sat,
+                );
                 let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 (bits(&r), bits(&g), bits(&b), sat)
             };
-            let fast = run(&|out, sat| bin_row_pair(pattern, [&rows[0], &rows[1]], out, sat));
-            let general = run(&|out, sat| bin_any_row(pattern, [&rows[0], &rows[1]], out, sat));
+            let (fast, general) = (run(bin_row_pair), run(bin_any_row));
             assert_eq!(fast, general, "{pattern:?}");
         }
     }
