@@ -206,6 +206,13 @@ pub fn keep_dn(mosaic: Mosaic, pass: LinearPass) -> Result<(LinearMosaic, Sample
         }
     };
     // Counted without writing anything; the flags are written only if something clipped.
+    if let Some(limits) = DnLimits::of(&sites, pass.below_black_floor) {
+        let counts = (dn.dn.par_chunks(w.max(1)).enumerate())
+            .map(|(y, row)| limits.count_row(row, y % 2, &pass))
+            .reduce(|| empty_counts(&pass, 0), SampleCounts::plus);
+        let saturated = saturation_flags(&dn, counts.clipped, &saturated_row);
+        return Ok((linear_kept(&mosaic.pattern, dn, saturated), counts));
+    }
     let counts = (0..mosaic.height)
         .into_par_iter()
         .map_init(
@@ -223,20 +230,95 @@ pub fn keep_dn(mosaic: Mosaic, pass: LinearPass) -> Result<(LinearMosaic, Sample
             },
         )
         .reduce(|| empty_counts(&pass, 0), SampleCounts::plus);
-    let mut saturated = Vec::new();
-    if counts.clipped > 0 {
-        saturated = vec![false; dn.dn.len()];
-        (saturated.par_chunks_mut(w).enumerate()).for_each(|(y, flags)| saturated_row(y, flags));
+    let saturated = saturation_flags(&dn, counts.clipped, &saturated_row);
+    Ok((linear_kept(&mosaic.pattern, dn, saturated), counts))
+}
+
+/// The saturation flags of a frame kept as DN: none when no sample clipped.
+fn saturation_flags(
+    dn: &DnMosaic,
+    clipped: usize,
+    saturated_row: &(impl Fn(usize, &mut [bool]) + Sync),
+) -> Vec<bool> {
+    if clipped == 0 {
+        return Vec::new();
     }
-    let linear = LinearMosaic {
-        width: mosaic.width,
-        height: mosaic.height,
-        pattern: mosaic.pattern,
+    let mut saturated = vec![false; dn.dn.len()];
+    (saturated.par_chunks_mut(dn.width.max(1)).enumerate())
+        .for_each(|(y, flags)| saturated_row(y, flags));
+    saturated
+}
+
+fn linear_kept(pattern: &[[u8; 2]; 2], dn: DnMosaic, saturated: Vec<bool>) -> LinearMosaic {
+    LinearMosaic {
+        width: dn.width,
+        height: dn.height,
+        pattern: *pattern,
         values: Vec::new(),
         saturated,
         dn: Some(dn),
-    };
-    Ok((linear, counts))
+    }
+}
+
+/// The counts of [`keep_dn`] as limits on the stored values: a site's linear value
+/// `(dn - offset) * scale` and the test `dn as f32 >= threshold` only grow with `dn`, so the
+/// samples under the floor are those under one DN per site, and the clipped ones those from
+/// one DN up. Found by testing every 16-bit value once, so the counts are the linear tests'
+/// exactly; and integer tests on the stored row count it without converting it (the
+/// conversion was most of the count's 0.15 s of CPU per 16 MP set).
+struct DnLimits {
+    /// Per row parity and column parity: the values `0..below` lie under the floor (0 without
+    /// a floor).
+    below: [[u32; 2]; 2],
+    /// The values from `clip` up are saturated.
+    clip: u32,
+}
+
+impl DnLimits {
+    /// `None` where a site's test is not a prefix of the 16-bit values (a NaN or a negative
+    /// scale): the caller then tests each linear value.
+    fn of(sites: &Sites, floor: Option<f32>) -> Option<DnLimits> {
+        // Written as the flags' test, negated: with a NaN threshold no value is saturated.
+        let saturated = |d: u16| d as f32 >= sites.threshold;
+        let clip = prefix(|d| !saturated(d))?;
+        let mut below = [[0u32; 2]; 2];
+        if let Some(floor) = floor {
+            for (limits, scales) in below.iter_mut().zip(sites.scales) {
+                for (limit, (offset, scale)) in limits.iter_mut().zip(scales) {
+                    *limit = prefix(|d| (d as f32 - offset) * scale < floor)?;
+                }
+            }
+        }
+        Some(DnLimits { below, clip })
+    }
+
+    /// The counts of one stored row of parity `y2`.
+    fn count_row(&self, row: &[u16], y2: usize, pass: &LinearPass) -> SampleCounts {
+        let [b0, b1] = self.below[y2];
+        let (mut below, mut clipped) = (0u32, 0u32);
+        for pair in row.chunks_exact(2) {
+            let (a, b) = (pair[0] as u32, pair[1] as u32);
+            below += (a < b0) as u32 + (b < b1) as u32;
+            clipped += (a >= self.clip) as u32 + (b >= self.clip) as u32;
+        }
+        if let Some(&last) = row.chunks_exact(2).remainder().first() {
+            below += ((last as u32) < b0) as u32;
+            clipped += (last as u32 >= self.clip) as u32;
+        }
+        let mut counts = empty_counts(pass, row.len());
+        counts.clipped = clipped as usize;
+        if let Some(b) = counts.below_floor.as_mut() {
+            *b = below as usize;
+        }
+        counts
+    }
+}
+
+/// How many 16-bit values from 0 up pass `test`, when those that pass are a prefix of them.
+fn prefix(test: impl Fn(u16) -> bool) -> Option<u32> {
+    let n = (0..=u16::MAX).take_while(|&d| test(d)).count();
+    let rest_fail = (n..=u16::MAX as usize).all(|d| !test(d as u16));
+    rest_fail.then_some(n as u32)
 }
 
 /// Linearises `mosaic`, counts its samples for the plausibility check, subtracts
@@ -415,6 +497,34 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    /// The counts of a frame kept as DN, taken as limits on the stored values, are the linear
+    /// tests' exactly: with floors on the linear values of stored ones (the test is strict),
+    /// between them, and not finite.
+    #[test]
+    fn a_frame_kept_as_dn_counts_as_the_linear_tests_at_every_floor() {
+        let light = mosaic(33, 31, "RGGB", 5);
+        let mut floors: Vec<f32> = vec![f32::NAN, f32::INFINITY, f32::NEG_INFINITY, 0.0, -0.0];
+        for dn in 90..112u16 {
+            for black in [98.0f32, 100.0, 101.0, 104.0] {
+                let v = (dn as f32 - black) * (1.0 / (light.white - black));
+                floors.extend([
+                    v,
+                    f32::from_bits(v.to_bits() + 1),
+                    f32::from_bits(v.to_bits() - 1),
+                ]);
+            }
+        }
+        for floor in floors {
+            let pass = LinearPass {
+                dark: None,
+                below_black_floor: Some(floor),
+            };
+            let (_, counts) = linearize(&light, pass).unwrap();
+            let (_, kept_counts) = keep_dn(light.clone(), pass).unwrap();
+            assert_eq!(kept_counts, counts, "floor {floor:e}");
         }
     }
 
