@@ -510,11 +510,7 @@ mod tests {
         for dn in 90..112u16 {
             for black in [98.0f32, 100.0, 101.0, 104.0] {
                 let v = (dn as f32 - black) * (1.0 / (light.white - black));
-                floors.extend([
-                    v,
-                    f32::from_bits(v.to_bits() + 1),
-                    f32::from_bits(v.to_bits() - 1),
-                ]);
+                floors.extend([v, v.next_up(), v.next_down()]);
             }
         }
         for floor in floors {
