@@ -495,9 +495,9 @@ fn floor_of(values: &[f32]) -> Option<f32> {
 
 /// Samples the dark frame's floor is measured on. For Gaussian read noise the median and the
 /// MAD of `n` samples have standard errors of about `1.25 sigma / sqrt(n)` and
-/// `1.17 sigma / sqrt(n)` (0.1 % of sigma here), so the floor, 6 sigma below the median,
-/// moves by under 1 % of sigma: a light frame's count below it changes by a share of its
-/// samples far under `BELOW_BLACK_SHARE`.
+/// `1.17 sigma / sqrt(n)`, so the floor, 6 sigma below the median, has one of about
+/// `7.1 sigma / sqrt(n)`: 0.7 % of sigma here. A light frame's count below it changes by a
+/// share of its samples far under `BELOW_BLACK_SHARE`.
 const FLOOR_SAMPLES: usize = 1 << 20;
 
 /// At most `n` of `values`, every `k`-th from the first, `k` odd so that consecutive picks
