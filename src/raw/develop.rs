@@ -477,7 +477,7 @@ pub fn check_plausible(frames: &[(String, SampleCounts)]) -> std::result::Result
 /// so a few hot pixels do not inflate it) below its median. `None` for a dark frame with no
 /// spread (or not a RAW one): the below-black test then does not run.
 ///
-/// Measured on at most [`FLOOR_SAMPLES`] samples spread evenly over the frame: the light
+/// Measured on at most 2^20 samples (`FLOOR_SAMPLES`) spread evenly over the frame: the light
 /// frames wait for this floor, and the two selections over all of a 16 MP dark frame's
 /// samples kept the cores partly idle for about 0.15 s at the start of every solve.
 pub fn below_black_floor(dark: &DecodedFrame) -> Option<f32> {
