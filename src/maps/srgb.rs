@@ -127,13 +127,30 @@ pub fn srgb8_direct(v: f32) -> u16 {
 /// The 16-bit table ([`srgb16_direct`]), built on first use (tens of milliseconds).
 pub fn srgb16() -> &'static SrgbTable {
     static TABLE: OnceLock<SrgbTable> = OnceLock::new();
-    TABLE.get_or_init(|| SrgbTable::new(u16::MAX, srgb16_direct))
+    built_once(&TABLE, || SrgbTable::new(u16::MAX, srgb16_direct))
 }
 
 /// The 8-bit table ([`srgb8_direct`]), built on first use.
 pub fn srgb8() -> &'static SrgbTable {
     static TABLE: OnceLock<SrgbTable> = OnceLock::new();
-    TABLE.get_or_init(|| SrgbTable::new(u8::MAX as u16, srgb8_direct))
+    built_once(&TABLE, || SrgbTable::new(u8::MAX as u16, srgb8_direct))
+}
+
+/// `cell`'s table, built by `build` on first use. Not in `OnceLock::get_or_init`: the build
+/// runs on rayon's pool, and a worker that took part of it could, while it waits inside, pick
+/// up another job that asks for the table and then wait on the lock, which the builder holds
+/// until that worker is done: both wait for ever (two `cargo test` threads hung so, with both
+/// workers parked). So the lock is never held while building: two first users may both build
+/// the table, and the first one set is kept.
+fn built_once(
+    cell: &'static OnceLock<SrgbTable>,
+    build: impl FnOnce() -> SrgbTable,
+) -> &'static SrgbTable {
+    if let Some(table) = cell.get() {
+        return table;
+    }
+    let _ = cell.set(build());
+    cell.get().expect("set above or by another thread")
 }
 
 #[cfg(test)]
