@@ -528,10 +528,7 @@ mod tests {
         for (quality, tables) in encodings() {
             let encoding = (quality, tables);
             let predicted = predicted_bytes(&sources, &encode_bands(&sources, &sample, encoding));
-            let actual: usize = encode_bands(&sources, &bands, encoding)
-                .iter()
-                .map(|(_, jpeg)| jpeg.len() * 4 / 3)
-                .sum();
+            let actual = base64_size(&encode_bands(&sources, &bands, encoding));
             let off = predicted as f64 / actual as f64 - 1.0;
             // The sample is an eighth of the bands of an image of uniform texture: its bytes
             // per row are the whole's up to the last band's short height and the texture's
