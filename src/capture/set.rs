@@ -23,7 +23,6 @@ use crate::rig::Rig;
 use crate::timing::{Busy, StageClock};
 
 mod read;
-
 pub use read::{HASH_STAGE, READ_STAGE};
 
 /// The name of the set's copy of its rig, inside the set's folder.

@@ -278,14 +278,14 @@ impl DnLimits {
     /// `None` where a site's test is not a prefix of the 16-bit values (a NaN or a negative
     /// scale): the caller then tests each linear value.
     fn of(sites: &Sites, floor: Option<f32>) -> Option<DnLimits> {
-        // Written as the flags' test, negated: with a NaN threshold no value is saturated.
-        let saturated = |d: u16| d as f32 >= sites.threshold;
-        let clip = prefix(|d| !saturated(d))?;
+        // The tests of `Sites::linear` itself (the flag negated: with a NaN threshold no
+        // value is saturated), so the limits cannot drift from the linear values.
+        let clip = prefix(|d| !sites.linear(d, 0, 0).1)?;
         let mut below = [[0u32; 2]; 2];
         if let Some(floor) = floor {
-            for (limits, scales) in below.iter_mut().zip(sites.scales) {
-                for (limit, (offset, scale)) in limits.iter_mut().zip(scales) {
-                    *limit = prefix(|d| (d as f32 - offset) * scale < floor)?;
+            for (y2, limits) in below.iter_mut().enumerate() {
+                for (x2, limit) in limits.iter_mut().enumerate() {
+                    *limit = prefix(|d| sites.linear(d, x2, y2).0 < floor)?;
                 }
             }
         }

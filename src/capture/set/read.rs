@@ -43,11 +43,7 @@ pub(super) fn read_and_hash(
         hashing += t.elapsed();
     }
     let t = Instant::now();
-    let digest: String = hasher
-        .finalize()
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect();
+    let digest = crate::fsutil::hex(&hasher.finalize());
     hashing += t.elapsed();
     busy.add(HASH_STAGE, hashing);
     busy.add(READ_STAGE, start.elapsed().saturating_sub(hashing));
@@ -105,13 +101,9 @@ impl HashingReader {
             self.consume(n);
         }
         self.record(busy);
-        Ok(self.in_order.then(|| {
-            self.hasher
-                .finalize()
-                .iter()
-                .map(|b| format!("{b:02x}"))
-                .collect()
-        }))
+        Ok(self
+            .in_order
+            .then(|| crate::fsutil::hex(&self.hasher.finalize())))
     }
 
     /// The time spent reading and hashing so far.

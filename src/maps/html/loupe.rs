@@ -189,21 +189,19 @@ fn top_up_with_optimised(
     let mut order: Vec<usize> = (0..encoded.len()).collect();
     order.sort_by_key(|&i| std::cmp::Reverse(encoded[i].1.len()));
     let batch = encoded.len().div_ceil(TOP_UP_BATCHES).max(1);
-    let mut size = base64_size(encoded);
     for chunk in order.chunks(batch) {
-        if size <= budget {
+        if base64_size(encoded) <= budget {
             break;
         }
         let ids: Vec<BandId> = chunk.iter().map(|&i| encoded[i].0).collect();
         let optimised = encode_bands(sources, &ids, (quality, HuffmanTables::Optimised));
         for (&i, (_, jpeg)) in chunk.iter().zip(optimised) {
             if jpeg.len() < encoded[i].1.len() {
-                size -= (encoded[i].1.len() * 4 / 3) - (jpeg.len() * 4 / 3);
                 encoded[i].1 = jpeg;
             }
         }
     }
-    size
+    base64_size(encoded)
 }
 
 /// JPEGs of the bands `ids`, encoded in parallel (one band per task).
