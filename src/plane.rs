@@ -3,10 +3,12 @@
 //! and `Frames`, one RGB image per light, which is what decoding produces and solving consumes.
 
 mod dn;
+mod release;
 
 use rayon::prelude::*;
 
 pub use dn::{Dark, DnMosaic, DnSamples};
+pub use release::FrameRelease;
 
 use crate::error::{Error, Result};
 

@@ -13,7 +13,7 @@ use crate::maps::derive::{self, DeriveSource, SolvedMaps};
 use crate::maps::html::derived::DERIVED_DIR;
 use crate::maps::report::Histogram;
 use crate::maps::{self, MapOptions, Report, WrittenMaps};
-use crate::plane::{Frames, Mask, SensorWindow};
+use crate::plane::{FrameRelease, Frames, Mask, SensorWindow};
 use crate::progress::Progress;
 use crate::raw::DecodeInfo;
 use crate::region::{region_truth, select_region, RegionInfo};
@@ -227,6 +227,14 @@ fn solve_and_write(
         select_region(frames, &lights, noise, &job.region)
     })?;
     let mask = region_mask.or(own_mask);
+    if job.maps.report_html {
+        clock.time("frame previews", || {
+            maps::html::write_frame_strip(&frames, dir)
+        })?;
+    }
+    // Nothing reads the frames after the solve: it gives their rows back as it goes.
+    let mut frames = frames;
+    let mut release = FrameRelease::new(&mut frames);
     let input = SolveInput {
         frames: &frames,
         lights,
@@ -235,13 +243,8 @@ fn solve_and_write(
         mask: mask.as_ref(),
     };
     let result = clock.time("solve", || {
-        solve::solve_reusing(&input, &job.options, progress, buffers.take())
+        solve::solve_releasing(&input, &job.options, progress, buffers.take(), &mut release)
     })?;
-    if job.maps.report_html {
-        clock.time("frame previews", || {
-            maps::html::write_frame_strip(&frames, dir)
-        })?;
-    }
     let window = frames.window;
     clock.time("free frames", || drop(frames));
 

@@ -12,13 +12,12 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use rayon::prelude::*;
-
 use super::chi_square::ChiSquare;
 use super::fast;
-use super::kernel::{Kernel, RowOut, Scratch};
+use super::kernel::{for_each_row, Kernel, RowOut, Scratch};
 use super::lanes::Real;
 use super::{PixelFit, PixelStatus, SolveResult};
+use crate::plane::FrameRelease;
 use crate::progress::Progress;
 
 /// The streaming kernel's screen for the adaptive estimator: the exact kernel's chi-square
@@ -79,12 +78,15 @@ pub(super) fn solve_streaming<T: Real>(
     illumination: &super::Illumination,
     result: &mut SolveResult,
     progress: &dyn Progress,
+    release: Option<&mut FrameRelease>,
     row_fn: fn(&fast::Context, usize, &mut RowOut, &mut fast::RowScratch<T>),
 ) -> usize {
     let width = result.width;
     let escalated = AtomicUsize::new(0);
-    let rows = RowOut::split(result);
-    rows.into_par_iter().enumerate().for_each_init(
+    for_each_row(
+        RowOut::split(result),
+        ctx.frames,
+        release,
         || {
             (
                 fast::RowScratch::<T>::new(ctx),
@@ -92,7 +94,7 @@ pub(super) fn solve_streaming<T: Real>(
                 Vec::new(),
             )
         },
-        |(fast_scratch, exact_scratch, failed), (y, mut row)| {
+        |(fast_scratch, exact_scratch, failed), y, mut row| {
             row_fn(ctx, y, &mut row, fast_scratch);
             screen.screen_row(&row, fast_scratch.statistic(), failed);
             for &x in failed.iter() {

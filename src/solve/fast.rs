@@ -23,9 +23,7 @@
 //! reason. Fast-path pixels get normal, albedo, residual, condition number, lights used and,
 //! where asked for, the predicted error.
 
-use rayon::prelude::*;
-
-use super::kernel::{Kernel, RowOut, Scratch};
+use super::kernel::{for_each_row, Kernel, RowOut, Scratch};
 use super::lanes::{
     adjugate, apply, dot, frob_sq, load_rgb, madd, mix, own_channels, prefetch, store, subtract_if,
     vectors, vectors6, Real, LANES, PREFETCH_AHEAD, V,
@@ -36,7 +34,7 @@ use super::options::SolveOptions;
 use super::predict::DarkTest;
 use super::tiles::{self, exact_coefficients, Source, TileGrid};
 use super::{PixelFit, PixelStatus, SolveInput, SolveResult, LUMINANCE_WEIGHTS};
-use crate::plane::Frames;
+use crate::plane::{FrameRelease, Frames};
 use crate::progress::Progress;
 
 /// Where the coefficients come from.
@@ -49,7 +47,7 @@ pub enum Coefficients {
 
 /// What the streaming kernel needs, shared by all rows.
 pub struct Context<'a> {
-    frames: &'a Frames,
+    pub(super) frames: &'a Frames,
     illumination: &'a Illumination<'a>,
     coefficients: &'a Coefficients,
     exact: &'a Kernel<'a>,
@@ -153,12 +151,15 @@ pub fn solve_rows<T: Real>(
     ctx: &Context,
     result: &mut SolveResult,
     progress: &dyn Progress,
+    release: Option<&mut FrameRelease>,
     row_fn: fn(&Context, usize, &mut RowOut, &mut RowScratch<T>),
 ) {
-    let rows = RowOut::split(result);
-    rows.into_par_iter().enumerate().for_each_init(
+    for_each_row(
+        RowOut::split(result),
+        ctx.frames,
+        release,
         || RowScratch::<T>::new(ctx),
-        |scratch, (y, mut row)| {
+        |scratch, y, mut row| {
             row_fn(ctx, y, &mut row, scratch);
             progress.advance(1);
         },

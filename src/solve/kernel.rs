@@ -3,6 +3,7 @@
 //! predicted error.
 
 use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
 
 use super::chi_square::{ChiSquare, Screened};
 use super::lights::Illumination;
@@ -11,7 +12,7 @@ use super::options::{Estimator, Method, SolveOptions};
 use super::predict::{expected_angle_error, DarkTest};
 use super::robust;
 use super::{NoiseModel, PixelFit, PixelStatus, SolveInput, SolveResult, LUMINANCE_WEIGHTS};
-use crate::plane::Frames;
+use crate::plane::{FrameRelease, Frames};
 
 /// `lights_used` is stored as a byte.
 pub const MAX_LIGHTS: usize = 255;
@@ -94,6 +95,45 @@ impl<'a> RowOut<'a> {
                 escalated: 0,
             })
             .collect()
+    }
+}
+
+/// Bands a solve that gives its frames back goes in: the output pages faulted before the first
+/// band's frame rows are given back are a 32nd of the outputs, and the cores wait for each
+/// other at 32 band ends only (at most a row's work each).
+const RELEASE_BANDS: usize = 32;
+
+/// Runs `op(state, y, row)` on every row in parallel (rayon; `init` makes each worker's
+/// state). With `release` (made from `frames`), the rows go band by band, top to bottom, and
+/// after each band the frames' rows up to its end are given back to the kernel
+/// ([`FrameRelease`]): every solver here reads a pixel's frame samples only while it solves
+/// that pixel.
+pub(super) fn for_each_row<'a, S>(
+    rows: Vec<RowOut<'a>>,
+    frames: &Frames,
+    release: Option<&mut FrameRelease>,
+    init: impl Fn() -> S + Sync + Send,
+    op: impl Fn(&mut S, usize, RowOut<'a>) + Sync + Send,
+) {
+    let Some(release) = release else {
+        rows.into_par_iter()
+            .enumerate()
+            .for_each_init(init, |state, (y, row)| op(state, y, row));
+        return;
+    };
+    let band = rows.len().div_ceil(RELEASE_BANDS).max(1);
+    let mut rows = rows.into_iter().enumerate();
+    loop {
+        let batch: Vec<(usize, RowOut)> = rows.by_ref().take(band).collect();
+        let Some(end) = batch.last().map(|(y, _)| y + 1) else {
+            break;
+        };
+        batch
+            .into_par_iter()
+            .for_each_init(&init, |state, (y, row)| op(state, y, row));
+        // SAFETY: `release` was made from `frames` (the caller's word); every row before `end`
+        // is solved, and no solver reads a frame row again once its output row is done.
+        unsafe { release.release_rows_before(frames, end) };
     }
 }
 

@@ -29,10 +29,9 @@ mod sheen;
 pub mod tiles;
 
 use nalgebra::Vector3;
-use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::plane::{Frames, Mask, Plane};
+use crate::plane::{FrameRelease, Frames, Mask, Plane};
 use crate::progress::Progress;
 
 pub use lights::{GainGrid, Illumination, LightModel, LightSource};
@@ -332,6 +331,32 @@ pub fn solve_reusing(
     progress: &dyn Progress,
     previous: Option<SolveResult>,
 ) -> Result<SolveResult> {
+    solve_with(input, options, progress, previous, None)
+}
+
+/// As [`solve_reusing`], for a caller that drops the frames afterwards: `release`, made from
+/// `input.frames`, gives each band of their rows back to the kernel once the band is solved
+/// (see [`FrameRelease`]), so the outputs' pages reuse the frames' and the peak is lower. The
+/// frames' rows may read as zeros afterwards. Same results as [`solve`]. A solve that may
+/// need a second pass over the frames (adaptive with a sheen model) gives nothing back.
+pub fn solve_releasing(
+    input: &SolveInput,
+    options: &SolveOptions,
+    progress: &dyn Progress,
+    previous: Option<SolveResult>,
+    release: &mut FrameRelease,
+) -> Result<SolveResult> {
+    let release = (!may_solve_twice(options)).then_some(release);
+    solve_with(input, options, progress, previous, release)
+}
+
+fn solve_with(
+    input: &SolveInput,
+    options: &SolveOptions,
+    progress: &dyn Progress,
+    previous: Option<SolveResult>,
+    release: Option<&mut FrameRelease>,
+) -> Result<SolveResult> {
     let frames = input.frames;
     frames.validate()?;
     let (width, height) = (frames.width, frames.height);
@@ -373,10 +398,17 @@ pub fn solve_reusing(
             &mut result,
             progress,
             reused,
+            release,
         ),
-        KernelChoice::Exact { .. } => {
-            solve_pass(input, &kernel, &illumination, &mut result, progress, false)
-        }
+        KernelChoice::Exact { .. } => solve_pass(
+            input,
+            &kernel,
+            &illumination,
+            &mut result,
+            progress,
+            false,
+            release,
+        ),
     };
     progress.end();
     if needs_sheen_everywhere(options, &result) {
@@ -385,7 +417,15 @@ pub fn solve_reusing(
         // sheen, every pixel gets the sheen fit.
         let kernel = kernel.forcing_sheen();
         progress.begin("sheen", height as u64);
-        solve_pass(input, &kernel, &illumination, &mut result, progress, true);
+        solve_pass(
+            input,
+            &kernel,
+            &illumination,
+            &mut result,
+            progress,
+            true,
+            None,
+        );
         result.sheen_everywhere = true;
         progress.end();
     }
@@ -401,34 +441,41 @@ fn solve_pass(
     result: &mut SolveResult,
     progress: &dyn Progress,
     again: bool,
+    release: Option<&mut FrameRelease>,
 ) -> usize {
     let width = result.width;
     let escalated = std::sync::atomic::AtomicUsize::new(0);
     let rows = kernel::RowOut::split(result);
-    rows.into_par_iter().enumerate().for_each(|(y, mut row)| {
-        let mut scratch = kernel::Scratch::with_capacity(illumination.len());
-        for x in 0..width {
-            if input.mask.is_some_and(|m| !m.data[y * width + x]) {
-                continue;
+    let scratch = || kernel::Scratch::with_capacity(illumination.len());
+    kernel::for_each_row(
+        rows,
+        input.frames,
+        release,
+        scratch,
+        |scratch, y, mut row| {
+            for x in 0..width {
+                if input.mask.is_some_and(|m| !m.data[y * width + x]) {
+                    continue;
+                }
+                if again && !row.is_lambertian(x) {
+                    continue;
+                }
+                match illumination.point(x, y) {
+                    Some(point) => kernel.solve_pixel(y * width + x, &point, scratch, &mut row, x),
+                    None => row.status[x] = PixelStatus::Degenerate,
+                }
             }
-            if again && !row.is_lambertian(x) {
-                continue;
-            }
-            match illumination.point(x, y) {
-                Some(point) => kernel.solve_pixel(y * width + x, &point, &mut scratch, &mut row, x),
-                None => row.status[x] = PixelStatus::Degenerate,
-            }
-        }
-        escalated.fetch_add(row.escalated, std::sync::atomic::Ordering::Relaxed);
-        progress.advance(1);
-    });
+            escalated.fetch_add(row.escalated, std::sync::atomic::Ordering::Relaxed);
+            progress.advance(1);
+        },
+    );
     escalated.into_inner()
 }
 
 /// Adaptive only: true when a sheen model is configured and more of the solved pixels needed
 /// it in the first pass than `sheen_scene_fraction`.
 fn needs_sheen_everywhere(options: &SolveOptions, result: &SolveResult) -> bool {
-    if options.estimator() != Estimator::Adaptive || options.robust.sheen.is_none() {
+    if !may_solve_twice(options) {
         return false;
     }
     let solved = result.count(PixelStatus::Solved);
@@ -437,9 +484,15 @@ fn needs_sheen_everywhere(options: &SolveOptions, result: &SolveResult) -> bool 
             > options.robust.sheen_scene_fraction * solved as f64
 }
 
+/// Whether the first pass may call for a second over every pixel ([`needs_sheen_everywhere`]).
+fn may_solve_twice(options: &SolveOptions) -> bool {
+    options.estimator() == Estimator::Adaptive && options.robust.sheen.is_some()
+}
+
 /// The streaming kernel at the requested precision and coefficient source; for the adaptive
 /// estimator followed, row by row, by the exact kernel where the screen asks for it. Returns
 /// how many pixels the robust fit ran on.
+#[allow(clippy::too_many_arguments)]
 fn solve_streaming(
     input: &SolveInput,
     streaming: &Streaming,
@@ -448,6 +501,7 @@ fn solve_streaming(
     result: &mut SolveResult,
     progress: &dyn Progress,
     reused: bool,
+    release: Option<&mut FrameRelease>,
 ) -> usize {
     let options = kernel.options();
     let (w, h) = (input.frames.width, input.frames.height);
@@ -474,6 +528,7 @@ fn solve_streaming(
                     illumination,
                     result,
                     progress,
+                    release,
                     fast::row_f32,
                 ),
                 Precision::F64 => adaptive::solve_streaming(
@@ -483,16 +538,17 @@ fn solve_streaming(
                     illumination,
                     result,
                     progress,
+                    release,
                     fast::row_f64,
                 ),
             }
         }
         (StreamingEstimator::LeastSquares, Precision::F32) => {
-            fast::solve_rows::<f32>(&ctx, result, progress, fast::row_f32);
+            fast::solve_rows::<f32>(&ctx, result, progress, release, fast::row_f32);
             0
         }
         (StreamingEstimator::LeastSquares, Precision::F64) => {
-            fast::solve_rows::<f64>(&ctx, result, progress, fast::row_f64);
+            fast::solve_rows::<f64>(&ctx, result, progress, release, fast::row_f64);
             0
         }
     }
@@ -544,3 +600,6 @@ mod tests;
 
 #[cfg(test)]
 mod tests_fast;
+
+#[cfg(test)]
+mod tests_release;

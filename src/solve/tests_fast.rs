@@ -282,7 +282,7 @@ fn streaming_adaptive_escalates_through_the_exact_kernel() {
 }
 
 /// Every output plane, bit for bit.
-fn assert_same(a: &SolveResult, b: &SolveResult, what: &str) {
+pub(super) fn assert_same(a: &SolveResult, b: &SolveResult, what: &str) {
     let planes = |r: &SolveResult| {
         let mut v: Vec<Vec<u32>> = r
             .normal

@@ -1,0 +1,231 @@
+//! Giving the memory of frame rows a solve has finished back to the kernel while the solve
+//! goes on, for a caller that drops the frames afterwards.
+//!
+//! Why: a 16 MP solve's outputs are over half a gigabyte of fresh pages, written while the
+//! frames (another half gigabyte) are still held. On a virtual machine that hands free memory
+//! back to its host (free page reporting), a fresh page costs a fault on the host as well as
+//! the kernel's zeroing: perf showed `clear_page_erms` in more than half of the solve's samples.
+//! The frame rows above the band being solved are never read again; given back with
+//! `madvise(MADV_DONTNEED)`, their pages are what the next output rows fault in, and the peak
+//! is lower by what was given back.
+//!
+//! Only buffers each frame owns are given back (its colour planes, DN samples and saturation
+//! flags), in whole 2 MiB pages, the transparent huge pages large buffers are backed with
+//! (`alloc::huge_pages`). The stack's shared planes (a dark frame, the CFA colour ratios) are
+//! shared by every frame through an `Arc` and stay whole.
+
+use super::{Frames, LightFrame};
+
+/// Granularity of what is given back: one transparent huge page.
+const PAGE: usize = 2 << 20;
+
+/// Consent, taken from the frames' owner, to give their rows back to the kernel band by band;
+/// see [`FrameRelease::release_rows_before`].
+pub struct FrameRelease {
+    buffers: Vec<RowBuffer>,
+}
+
+/// One row-major buffer of a frame.
+struct RowBuffer {
+    /// The buffer's first byte, taken from the `Vec` through `&mut` (a pointer that may write).
+    start: *mut u8,
+    /// Bytes per row.
+    row_bytes: usize,
+    /// Bytes in all.
+    len: usize,
+    /// Bytes from `start` given back so far (a multiple of [`PAGE`] past the first boundary).
+    released: usize,
+}
+
+// SAFETY: the pointers are only used by `release_rows_before`, whose caller guarantees that no
+// thread reads the rows it gives back; moving the handle between threads changes nothing.
+unsafe impl Send for FrameRelease {}
+
+impl FrameRelease {
+    /// Records every buffer the frames own, row by row (`&mut`: only their owner may consent).
+    pub fn new(frames: &mut Frames) -> FrameRelease {
+        let (width, height) = (frames.width, frames.height);
+        let mut buffers = Vec::new();
+        for frame in &mut frames.lights {
+            owned_buffers_mut(frame, &mut |start, elem, len| {
+                if len == width * height && len > 0 {
+                    buffers.push(RowBuffer {
+                        start,
+                        row_bytes: width * elem,
+                        len: len * elem,
+                        released: 0,
+                    });
+                }
+            });
+        }
+        FrameRelease { buffers }
+    }
+
+    /// Bytes given back so far.
+    pub fn released_bytes(&self) -> usize {
+        self.buffers.iter().map(|b| b.released).sum()
+    }
+
+    /// Gives back the whole 2 MiB pages of every recorded buffer that hold only rows before
+    /// `y`: those rows then read as zeros (a valid value of every sample type here), and their
+    /// pages go back to the kernel.
+    ///
+    /// # Panics
+    /// If `frames` no longer holds the buffers [`FrameRelease::new`] recorded, in order.
+    ///
+    /// # Safety
+    /// `frames` is the `Frames` this release was made from, and no thread reads its rows
+    /// before `y` during or after this call (they are only dropped).
+    pub unsafe fn release_rows_before(&mut self, frames: &Frames, y: usize) {
+        // The recorded buffers are a subsequence of the frames' buffers, in the same order.
+        let mut matched = 0;
+        for frame in &frames.lights {
+            owned_buffers(frame, &mut |start, bytes| {
+                let next = self.buffers.get(matched);
+                if next.is_some_and(|b| (b.start as usize, b.len) == (start, bytes)) {
+                    matched += 1;
+                }
+            });
+        }
+        assert!(
+            matched == self.buffers.len(),
+            "the frames no longer hold the buffers their release was made from"
+        );
+        for buffer in &mut self.buffers {
+            // SAFETY: the buffer is alive and unmoved (`frames` holds it, checked above), and
+            // the caller guarantees its rows before `y` are not read again.
+            unsafe { buffer.release_rows_before(y) };
+        }
+    }
+}
+
+impl RowBuffer {
+    /// Gives back the whole [`PAGE`]s of the rows before `y`.
+    ///
+    /// # Safety
+    /// The buffer is alive, and its rows before `y` are not read again.
+    unsafe fn release_rows_before(&mut self, y: usize) {
+        let addr = self.start as usize;
+        let end = (addr + (y * self.row_bytes).min(self.len)) / PAGE * PAGE;
+        let from = (addr + self.released).next_multiple_of(PAGE);
+        if end <= from {
+            return;
+        }
+        #[cfg(target_os = "linux")]
+        // SAFETY: [from, end) lies inside the live buffer (the caller's guarantee), in rows no
+        // one reads again; MADV_DONTNEED on private anonymous memory makes it read as zeros.
+        unsafe {
+            libc::madvise(
+                self.start.add(from - addr) as *mut libc::c_void,
+                end - from,
+                libc::MADV_DONTNEED,
+            );
+        }
+        self.released = end - addr;
+    }
+}
+
+/// Calls `each(start, element size, elements)` for every row-major buffer `frame` owns.
+fn owned_buffers_mut(frame: &mut LightFrame, each: &mut dyn FnMut(*mut u8, usize, usize)) {
+    fn one<T>(data: &mut Vec<T>, each: &mut dyn FnMut(*mut u8, usize, usize)) {
+        each(
+            data.as_mut_ptr() as *mut u8,
+            std::mem::size_of::<T>(),
+            data.len(),
+        );
+    }
+    for plane in [&mut frame.rgb.r, &mut frame.rgb.g, &mut frame.rgb.b] {
+        one(&mut plane.data, each);
+    }
+    if let Some(mask) = &mut frame.saturated {
+        one(&mut mask.data, each);
+    }
+    if let Some(dn) = &mut frame.dn {
+        dn.dn.iter_mut().for_each(|plane| one(plane, each));
+    }
+    if let Some(mosaic) = &mut frame.cfa_dn {
+        one(&mut mosaic.dn, each);
+    }
+}
+
+/// [`owned_buffers_mut`] read-only, as `each(start address, bytes)`, in the same order.
+fn owned_buffers(frame: &LightFrame, each: &mut dyn FnMut(usize, usize)) {
+    fn one<T>(data: &[T], each: &mut dyn FnMut(usize, usize)) {
+        each(data.as_ptr() as usize, std::mem::size_of_val(data));
+    }
+    for plane in [&frame.rgb.r, &frame.rgb.g, &frame.rgb.b] {
+        one(&plane.data, each);
+    }
+    if let Some(mask) = &frame.saturated {
+        one(&mask.data, each);
+    }
+    if let Some(dn) = &frame.dn {
+        dn.dn.iter().for_each(|plane| one(plane, each));
+    }
+    if let Some(mosaic) = &frame.cfa_dn {
+        one(&mosaic.dn, each);
+    }
+}
+
+#[cfg(all(test, target_os = "linux"))]
+mod tests {
+    use super::*;
+    use crate::plane::{Mask, Plane, RgbPlanes, SensorWindow};
+
+    /// One frame of `width x height` planes of ones, with a saturation mask all set.
+    fn frames(width: usize, height: usize) -> Frames {
+        let plane = || Plane::new(width, height, 1.0);
+        let rgb = RgbPlanes {
+            r: plane(),
+            g: plane(),
+            b: plane(),
+        };
+        let mask = Mask::new(width, height, true);
+        Frames {
+            width,
+            height,
+            window: SensorWindow::FULL,
+            lights: vec![LightFrame::from_rgb(rgb, Some(mask))],
+        }
+    }
+
+    #[test]
+    fn given_back_rows_read_as_zeros_and_the_rows_after_them_are_kept() {
+        // 4 KiB rows of `f32`: 512 rows to a 2 MiB page, 16 MiB planes.
+        let (w, h, half) = (1024, 4096, 2048);
+        let mut frames = frames(w, h);
+        let mut release = FrameRelease::new(&mut frames);
+        // SAFETY: made from these frames; the test reads back only to check the zeros.
+        unsafe { release.release_rows_before(&frames, half) };
+        let plane = &frames.lights[0].rgb.g.data;
+        let zero_rows = (0..h)
+            .filter(|&y| plane[y * w..(y + 1) * w].iter().all(|&v| v == 0.0))
+            .count();
+        // Whole pages only: the rows before the first page boundary are kept, and so is the
+        // row across the last one given back.
+        assert!(
+            (half - 513..=half).contains(&zero_rows),
+            "{zero_rows} rows zero"
+        );
+        assert!(plane[half * w..].iter().all(|&v| v == 1.0));
+        let flags = &frames.lights[0].saturated.as_ref().unwrap().data;
+        assert!(flags[half * w..].iter().all(|&f| f));
+        // Giving the same rows back again gives nothing more; the rest goes at the end.
+        let given = release.released_bytes();
+        unsafe { release.release_rows_before(&frames, half) };
+        assert_eq!(release.released_bytes(), given);
+        unsafe { release.release_rows_before(&frames, h) };
+        let all = 3 * w * h * 4 + w * h;
+        assert!(release.released_bytes() + 4 * 2 * PAGE >= all);
+    }
+
+    #[test]
+    #[should_panic(expected = "no longer hold the buffers")]
+    fn a_release_refuses_frames_that_no_longer_hold_its_buffers() {
+        let mut frames = frames(1024, 1024);
+        let mut release = FrameRelease::new(&mut frames);
+        frames.lights[0].rgb.g = Plane::new(1024, 1024, 1.0);
+        // SAFETY: the check fails before anything is given back.
+        unsafe { release.release_rows_before(&frames, 512) };
+    }
+}

@@ -1,0 +1,94 @@
+//! A solve that gives its frames back band by band against one that keeps them: every output
+//! the same bit for bit, on frames large enough that pages are given back mid-solve (had a
+//! band given back rows before they were solved, those pixels would read zeros and differ).
+
+use super::tests_fast::assert_same;
+use super::*;
+use crate::bench::{bench_noise, render_scene, SceneKind};
+use crate::progress::Silent;
+use crate::rig::Rig;
+
+/// 2 MP: each `f32` plane of a frame spans four 2 MiB pages, so bands give pages back while
+/// later rows are still being solved.
+const MP: f64 = 2.0;
+
+/// The frames' owned bytes (colour planes and saturation flags).
+fn owned_bytes(frames: &Frames) -> usize {
+    frames
+        .lights
+        .iter()
+        .map(|f| {
+            let planes = 3 * f.rgb.r.data.len() * 4;
+            planes + f.saturated.as_ref().map_or(0, |m| m.data.len())
+        })
+        .sum()
+}
+
+/// Solves `frames` keeping them, then giving them back; both results and the bytes given back.
+fn kept_and_released(
+    rig: &Rig,
+    frames: &Frames,
+    options: &SolveOptions,
+) -> (SolveResult, SolveResult, usize) {
+    let input = |frames| SolveInput {
+        frames,
+        lights: LightSource::Rig(rig),
+        noise: bench_noise(rig),
+        exposure: 1.0,
+        mask: None,
+    };
+    let kept = solve(&input(frames), options, &Silent).unwrap();
+    let mut copy = frames.clone();
+    let mut release = FrameRelease::new(&mut copy);
+    let released = solve_releasing(&input(&copy), options, &Silent, None, &mut release).unwrap();
+    (kept, released, release.released_bytes())
+}
+
+#[test]
+fn giving_the_frames_back_band_by_band_changes_no_output() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::Shadows, MP, &Silent).unwrap();
+    let owned = owned_bytes(&frames);
+    let kernels = [
+        ("default (adaptive, streaming)", SolveOptions::default()),
+        ("exact adaptive", SolveOptions::exact(Estimator::Adaptive)),
+        (
+            "streaming least squares",
+            SolveOptions {
+                kernel: KernelChoice::new(
+                    Estimator::LeastSquares,
+                    Method::NormalEquations,
+                    Precision::F32,
+                    None,
+                    true,
+                )
+                .unwrap(),
+                ..SolveOptions::default()
+            },
+        ),
+    ];
+    for (what, options) in kernels {
+        let (kept, released, bytes) = kept_and_released(&rig, &frames, &options);
+        assert_same(&kept, &released, what);
+        if what.contains("adaptive") {
+            assert!(kept.escalated > 0, "{what}: the robust fit read frames too");
+        }
+        // All but the partial 2 MiB pages at each buffer's ends (two per buffer at most).
+        let buffers = frames.lights.len() * 4;
+        assert!(
+            bytes + buffers * 2 * (2 << 20) >= owned && bytes <= owned,
+            "{what}: gave back {bytes} of {owned} bytes"
+        );
+    }
+}
+
+#[test]
+fn a_solve_that_may_pass_twice_keeps_its_frames() {
+    let rig = Rig::default_rig();
+    let (_, frames) = render_scene(&rig, SceneKind::Sheen, MP, &Silent).unwrap();
+    let mut options = SolveOptions::default();
+    options.robust.sheen = Some(SheenModel::default());
+    let (kept, released, bytes) = kept_and_released(&rig, &frames, &options);
+    assert_eq!(bytes, 0, "a second pass reads every frame again");
+    assert_same(&kept, &released, "adaptive with sheen");
+}
