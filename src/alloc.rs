@@ -1,8 +1,8 @@
 //! Allocation helpers: the `psscan` binary's global allocator ([`LargePageAlloc`], and
 //! [`keep_freed_memory`] at start), a counting one, so benchmarks can report peak heap memory
 //! of one stage (installed instead when built with the `count-alloc` feature, [`COUNTING`]; the
-//! library only reads the counters, zero when not installed), and the hint that backs large
-//! buffers with huge pages.
+//! library only reads the counters, zero when not installed), and the hint that backs a buffer
+//! with small pages after all.
 //!
 //! Why the binary cares: a 16 MP solve allocates several times its peak memory over its run
 //! (decoded frames, RGB planes, maps, encoder buffers), and on a virtual machine each fresh
@@ -25,7 +25,8 @@ pub const COUNTING: bool = cfg!(feature = "count-alloc");
 const HUGE_PAGE_MIN: usize = 4 << 20;
 
 /// The system allocator, with every allocation of at least `HUGE_PAGE_MIN` bytes advised to
-/// be backed by transparent huge pages ([`huge_pages`]).
+/// be backed by transparent huge pages (`madvise(MADV_HUGEPAGE)`; [`small_pages`] undoes it
+/// for one buffer).
 pub struct LargePageAlloc;
 
 unsafe impl GlobalAlloc for LargePageAlloc {
@@ -133,25 +134,42 @@ pub fn peak() -> usize {
     PEAK.load(Ordering::Relaxed)
 }
 
-/// Advises the kernel to back `data` with transparent huge pages (Linux; a hint only, contents
-/// unchanged): a buffer written once in full is spared the many page faults and TLB misses of
-/// 4 KiB pages.
-pub fn huge_pages<T>(data: &mut [T]) {
-    advise_huge_pages(data.as_mut_ptr() as usize, std::mem::size_of_val(data));
+/// Advises the kernel to back `data` with 4 KiB pages rather than the transparent huge pages
+/// every large allocation is advised to use (Linux; a hint only, contents unchanged). For a
+/// buffer written once in order and read once in order (a solve's outputs), where huge pages
+/// save few TLB misses: each huge-page fault needs a free 2 MiB block, which on a fragmented
+/// machine the kernel compacts memory to make (for advised memory, with `defrag` at its
+/// default "madvise", while the fault waits), whereas a 4 KiB fault takes any free page, such
+/// as those a solve gives back from its frames (`plane::FrameRelease`, whose buffers are
+/// mostly in 4 KiB pages: calloc zeroes a reused heap block before it can be advised).
+pub fn small_pages<T>(data: &mut [T]) {
+    #[cfg(target_os = "linux")]
+    advise_pages(
+        data.as_mut_ptr() as usize,
+        std::mem::size_of_val(data),
+        libc::MADV_NOHUGEPAGE,
+    );
+    #[cfg(not(target_os = "linux"))]
+    let _ = data;
 }
 
-/// [`huge_pages`] for the `len` bytes at address `start` (the whole 2 MiB pages inside them).
+/// Advises the kernel to back the `len` bytes at address `start` with transparent huge pages
+/// (the whole 2 MiB pages inside them).
 fn advise_huge_pages(start: usize, len: usize) {
     #[cfg(target_os = "linux")]
-    {
-        const HUGE: usize = 2 << 20;
-        let (a, b) = (start.next_multiple_of(HUGE), (start + len) / HUGE * HUGE);
-        if b > a {
-            // SAFETY: the range lies inside one live allocation; MADV_HUGEPAGE changes no
-            // contents, only how the pages are backed.
-            unsafe { libc::madvise(a as *mut libc::c_void, b - a, libc::MADV_HUGEPAGE) };
-        }
-    }
+    advise_pages(start, len, libc::MADV_HUGEPAGE);
     #[cfg(not(target_os = "linux"))]
     let _ = (start, len);
+}
+
+/// `madvise(advice)` on the whole 2 MiB pages inside the `len` bytes at `start`.
+#[cfg(target_os = "linux")]
+fn advise_pages(start: usize, len: usize, advice: libc::c_int) {
+    const HUGE: usize = 2 << 20;
+    let (a, b) = (start.next_multiple_of(HUGE), (start + len) / HUGE * HUGE);
+    if b > a {
+        // SAFETY: the range lies inside one live allocation; the advice changes no contents,
+        // only how the pages are backed.
+        unsafe { libc::madvise(a as *mut libc::c_void, b - a, advice) };
+    }
 }

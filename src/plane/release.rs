@@ -10,8 +10,8 @@
 //! is lower by what was given back.
 //!
 //! Only buffers each frame owns are given back (its colour planes, DN samples and saturation
-//! flags), in whole 2 MiB pages, the transparent huge pages large buffers are backed with
-//! (`alloc::huge_pages`). The stack's shared planes (a dark frame, the CFA colour ratios) are
+//! flags), in whole 2 MiB pages (what a transparent huge page spans, where a buffer has them).
+//! The stack's shared planes (a dark frame, the CFA colour ratios) are
 //! shared by every frame through an `Arc` and stay whole.
 
 use super::{Frames, LightFrame};
@@ -59,6 +59,21 @@ impl FrameRelease {
             });
         }
         FrameRelease { buffers }
+    }
+
+    /// Gives back at most `bytes` in all: keeps the first recorded buffers that fit within
+    /// them, and leaves the others whole.
+    pub fn limit(&mut self, bytes: usize) {
+        let mut total = 0;
+        self.buffers.retain(|b| {
+            total += b.len;
+            total <= bytes
+        });
+    }
+
+    /// Whether there is nothing (left) to give back: no buffer of the frame's size.
+    pub fn is_empty(&self) -> bool {
+        self.buffers.is_empty()
     }
 
     /// Bytes given back so far.
@@ -217,6 +232,22 @@ mod tests {
         unsafe { release.release_rows_before(&frames, h) };
         let all = 3 * w * h * 4 + w * h;
         assert!(release.released_bytes() + 4 * 2 * PAGE >= all);
+    }
+
+    #[test]
+    fn a_limited_release_gives_back_only_the_buffers_within_the_limit() {
+        let (w, h) = (1024, 2048);
+        let mut frames = frames(w, h);
+        let mut release = FrameRelease::new(&mut frames);
+        release.limit(w * h * 4 * 3 / 2);
+        // SAFETY: made from these frames; the test reads back only to check the zeros.
+        unsafe { release.release_rows_before(&frames, h) };
+        let rgb = &frames.lights[0].rgb;
+        assert!(rgb.r.data.iter().filter(|&&v| v == 0.0).count() >= w * (h - 1024));
+        assert!(rgb.g.data.iter().chain(&rgb.b.data).all(|&v| v == 1.0));
+        assert!(release.released_bytes() <= w * h * 4);
+        release.limit(0);
+        assert!(release.is_empty());
     }
 
     #[test]

@@ -183,13 +183,15 @@ impl SolveResult {
         let n = width * height;
         let plane = || {
             let mut p = Plane::new(width, height, 0.0);
-            crate::alloc::huge_pages(&mut p.data);
+            crate::alloc::small_pages(&mut p.data);
             p
         };
         let mut lights_used = vec![0u8; n];
-        crate::alloc::huge_pages(&mut lights_used);
+        crate::alloc::small_pages(&mut lights_used);
         let mut status = zeroed_u8_enum::<PixelStatus>(n);
-        crate::alloc::huge_pages(&mut status);
+        crate::alloc::small_pages(&mut status);
+        let mut fit = zeroed_u8_enum::<PixelFit>(n);
+        crate::alloc::small_pages(&mut fit);
         SolveResult {
             width,
             height,
@@ -200,7 +202,7 @@ impl SolveResult {
             condition: plane(),
             lights_used,
             status,
-            fit: zeroed_u8_enum::<PixelFit>(n),
+            fit,
             escalated: 0,
             sheen_everywhere: false,
         }
@@ -337,8 +339,12 @@ pub fn solve_reusing(
 /// As [`solve_reusing`], for a caller that drops the frames afterwards: `release`, made from
 /// `input.frames`, gives each band of their rows back to the kernel once the band is solved
 /// (see [`FrameRelease`]), so the outputs' pages reuse the frames' and the peak is lower. The
-/// frames' rows may read as zeros afterwards. Same results as [`solve`]. A solve that may
-/// need a second pass over the frames (adaptive with a sheen model) gives nothing back.
+/// frames' rows may read as zeros afterwards. Same results as [`solve`].
+///
+/// It gives back at most what the outputs fault in while the solve runs: memory given back
+/// beyond that is faulted in again by what runs after the solve (which would otherwise reuse
+/// the frames' freed blocks). So nothing where the outputs reuse `previous`'s planes, and
+/// nothing where a second pass may read the frames again (adaptive with a sheen model).
 pub fn solve_releasing(
     input: &SolveInput,
     options: &SolveOptions,
@@ -346,8 +352,29 @@ pub fn solve_releasing(
     previous: Option<SolveResult>,
     release: &mut FrameRelease,
 ) -> Result<SolveResult> {
-    let release = (!may_solve_twice(options)).then_some(release);
+    let (width, height) = (input.frames.width, input.frames.height);
+    let reused = previous
+        .as_ref()
+        .is_some_and(|r| (r.width, r.height) == (width, height));
+    release.limit(if reused || may_solve_twice(options) {
+        0
+    } else {
+        fresh_output_bytes(width * height, options)
+    });
+    // With nothing to give back, no bands: the rows go in one parallel sweep.
+    let release = (!release.is_empty()).then_some(release);
     solve_with(input, options, progress, previous, release)
+}
+
+/// Bytes of fresh output memory a solve into new planes first touches while it runs: the
+/// planes every kernel writes at every pixel (normal, albedo, residual, condition, lights
+/// used, status, and the predicted error where asked for), less what the exact kernel's
+/// prefill touches before it starts (the normal's z, the status). The `fit` plane, written
+/// only where a robust fit runs, is left out.
+fn fresh_output_bytes(pixels: usize, options: &SolveOptions) -> usize {
+    let planes = 8 + options.predict_error as usize;
+    let prefilled = if options.streaming() { 0 } else { 4 + 1 };
+    pixels * (4 * planes + 2 - prefilled)
 }
 
 fn solve_with(

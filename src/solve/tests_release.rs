@@ -24,11 +24,13 @@ fn owned_bytes(frames: &Frames) -> usize {
         .sum()
 }
 
-/// Solves `frames` keeping them, then giving them back; both results and the bytes given back.
+/// Solves `frames` keeping them, then giving them back (into `previous`'s planes where
+/// given); both results and the bytes given back.
 fn kept_and_released(
     rig: &Rig,
     frames: &Frames,
     options: &SolveOptions,
+    previous: Option<SolveResult>,
 ) -> (SolveResult, SolveResult, usize) {
     let input = |frames| SolveInput {
         frames,
@@ -40,7 +42,8 @@ fn kept_and_released(
     let kept = solve(&input(frames), options, &Silent).unwrap();
     let mut copy = frames.clone();
     let mut release = FrameRelease::new(&mut copy);
-    let released = solve_releasing(&input(&copy), options, &Silent, None, &mut release).unwrap();
+    let released =
+        solve_releasing(&input(&copy), options, &Silent, previous, &mut release).unwrap();
     (kept, released, release.released_bytes())
 }
 
@@ -67,18 +70,25 @@ fn giving_the_frames_back_band_by_band_changes_no_output() {
             },
         ),
     ];
+    let pixels = frames.width * frames.height;
     for (what, options) in kernels {
-        let (kept, released, bytes) = kept_and_released(&rig, &frames, &options);
+        let (kept, released, bytes) = kept_and_released(&rig, &frames, &options, None);
         assert_same(&kept, &released, what);
         if what.contains("adaptive") {
             assert!(kept.escalated > 0, "{what}: the robust fit read frames too");
         }
-        // All but the partial 2 MiB pages at each buffer's ends (two per buffer at most).
-        let buffers = frames.lights.len() * 4;
+        // What the outputs fault in, in whole buffers (a plane's `f32`s at most short), less
+        // the partial 2 MiB pages at each buffer's ends (two per buffer at most).
+        let limit = fresh_output_bytes(pixels, &options).min(owned);
+        let short = pixels * 4 + frames.lights.len() * 4 * 2 * (2 << 20);
         assert!(
-            bytes + buffers * 2 * (2 << 20) >= owned && bytes <= owned,
-            "{what}: gave back {bytes} of {owned} bytes"
+            bytes <= limit && bytes + short >= limit,
+            "{what}: gave back {bytes} bytes, the outputs fault in {limit}"
         );
+        // Into the last result's planes, the outputs fault nothing in: nothing is given back.
+        let (again, reused, bytes) = kept_and_released(&rig, &frames, &options, Some(released));
+        assert_same(&again, &reused, what);
+        assert_eq!(bytes, 0, "{what}: outputs reused");
     }
 }
 
@@ -88,7 +98,7 @@ fn a_solve_that_may_pass_twice_keeps_its_frames() {
     let (_, frames) = render_scene(&rig, SceneKind::Sheen, MP, &Silent).unwrap();
     let mut options = SolveOptions::default();
     options.robust.sheen = Some(SheenModel::default());
-    let (kept, released, bytes) = kept_and_released(&rig, &frames, &options);
+    let (kept, released, bytes) = kept_and_released(&rig, &frames, &options, None);
     assert_eq!(bytes, 0, "a second pass reads every frame again");
     assert_same(&kept, &released, "adaptive with sheen");
 }
