@@ -10,13 +10,13 @@
 //! is lower by what was given back.
 //!
 //! Only buffers each frame owns are given back (its colour planes, DN samples and saturation
-//! flags), in whole 2 MiB pages (what a transparent huge page spans, where a buffer has them).
-//! The stack's shared planes (a dark frame, the CFA colour ratios) are
-//! shared by every frame through an `Arc` and stay whole.
+//! flags), in whole 2 MiB pages. The stack's shared planes (a dark frame, the CFA colour
+//! ratios) are shared by every frame through an `Arc` and stay whole.
 
 use super::{Frames, LightFrame};
 
-/// Granularity of what is given back: one transparent huge page.
+/// Granularity of what is given back: what a transparent huge page spans (a large buffer may
+/// have them, and giving back part of one splits it), and few calls.
 const PAGE: usize = 2 << 20;
 
 /// Consent, taken from the frames' owner, to give their rows back to the kernel band by band;
@@ -33,8 +33,10 @@ struct RowBuffer {
     row_bytes: usize,
     /// Bytes in all.
     len: usize,
-    /// Bytes from `start` given back so far (a multiple of [`PAGE`] past the first boundary).
-    released: usize,
+    /// Bytes from `start` done with: given back, or before the first page boundary.
+    done: usize,
+    /// Bytes given back.
+    given: usize,
 }
 
 // SAFETY: the pointers are only used by `release_rows_before`, whose caller guarantees that no
@@ -53,7 +55,8 @@ impl FrameRelease {
                         start,
                         row_bytes: width * elem,
                         len: len * elem,
-                        released: 0,
+                        done: 0,
+                        given: 0,
                     });
                 }
             });
@@ -76,9 +79,10 @@ impl FrameRelease {
         self.buffers.is_empty()
     }
 
-    /// Bytes given back so far.
+    /// Bytes given back so far (on Linux; elsewhere nothing is given back, and this counts
+    /// what would have been).
     pub fn released_bytes(&self) -> usize {
-        self.buffers.iter().map(|b| b.released).sum()
+        self.buffers.iter().map(|b| b.given).sum()
     }
 
     /// Gives back the whole 2 MiB pages of every recorded buffer that hold only rows before
@@ -122,7 +126,7 @@ impl RowBuffer {
     unsafe fn release_rows_before(&mut self, y: usize) {
         let addr = self.start as usize;
         let end = (addr + (y * self.row_bytes).min(self.len)) / PAGE * PAGE;
-        let from = (addr + self.released).next_multiple_of(PAGE);
+        let from = (addr + self.done).next_multiple_of(PAGE);
         if end <= from {
             return;
         }
@@ -136,7 +140,8 @@ impl RowBuffer {
                 libc::MADV_DONTNEED,
             );
         }
-        self.released = end - addr;
+        self.done = end - addr;
+        self.given += end - from;
     }
 }
 

@@ -243,7 +243,10 @@ fn solve_and_write(
         mask: mask.as_ref(),
     };
     let result = clock.time("solve", || {
-        solve::solve_releasing(&input, &job.options, progress, buffers.take(), &mut release)
+        // SAFETY: the frames are this function's, lent to nothing but the solve.
+        unsafe {
+            solve::solve_releasing(&input, &job.options, progress, buffers.take(), &mut release)
+        }
     })?;
     let window = frames.window;
     clock.time("free frames", || drop(frames));

@@ -131,8 +131,9 @@ pub(super) fn for_each_row<'a, S>(
         batch
             .into_par_iter()
             .for_each_init(&init, |state, (y, row)| op(state, y, row));
-        // SAFETY: `release` was made from `frames` (the caller's word); every row before `end`
-        // is solved, and no solver reads a frame row again once its output row is done.
+        // SAFETY: `release` was made from `frames` (checked by `release_rows_before`); every
+        // row before `end` is solved, no solver reads a frame row again once its output row
+        // is done, and no other thread reads the frames (`solve_releasing`'s contract).
         unsafe { release.release_rows_before(frames, end) };
     }
 }

@@ -345,7 +345,12 @@ pub fn solve_reusing(
 /// beyond that is faulted in again by what runs after the solve (which would otherwise reuse
 /// the frames' freed blocks). So nothing where the outputs reuse `previous`'s planes, and
 /// nothing where a second pass may read the frames again (adaptive with a sheen model).
-pub fn solve_releasing(
+///
+/// # Safety
+/// No other thread reads `input.frames` while this runs: giving rows back writes zeros into
+/// them (`release`'s pointers may write; made from `&mut` frames, it is the owner's consent).
+/// Reading them afterwards is sound, and gives zeros where rows were given back.
+pub unsafe fn solve_releasing(
     input: &SolveInput,
     options: &SolveOptions,
     progress: &dyn Progress,
