@@ -59,6 +59,8 @@ const KNOWN_CYCLIC: &[&str] = &[];
 /// (with its data-scaled fallback), the exact kernel, the streaming kernel (with its tiles),
 /// the adaptive screen.
 const SOLVE_CHAIN: &[&str] = &[
+    // The output planes: imports no other file of solve.
+    "result",
     "lanes",
     "lights",
     "predict",
