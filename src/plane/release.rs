@@ -5,7 +5,7 @@
 //! frames (another half gigabyte) are still held. On a virtual machine that hands free memory
 //! back to its host (free page reporting), a fresh page costs a fault on the host as well as
 //! the kernel's zeroing: perf showed `clear_page_erms` in more than half of the solve's samples.
-//! The frame rows above the band being solved are never read again; given back with
+//! The frame rows a solve has finished are never read again; given back with
 //! `madvise(MADV_DONTNEED)`, their pages are what the next output rows fault in, and the peak
 //! is lower by what was given back.
 //!
@@ -19,7 +19,7 @@ use super::{Frames, LightFrame};
 /// have them, and giving back part of one splits it), and few calls.
 const PAGE: usize = 2 << 20;
 
-/// Consent, taken from the frames' owner, to give their rows back to the kernel band by band;
+/// Consent, taken from the frames' owner, to give their rows back to the kernel as they go;
 /// see [`FrameRelease::release_rows_before`].
 pub struct FrameRelease {
     buffers: Vec<RowBuffer>,

@@ -2,6 +2,9 @@
 //! problem for the four right-hand sides, and derive normal, albedo, residual, condition and
 //! predicted error.
 
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
@@ -98,16 +101,21 @@ impl<'a> RowOut<'a> {
     }
 }
 
-/// Bands a solve that gives its frames back goes in: the output pages faulted before the first
-/// band's frame rows are given back are a 32nd of the outputs, and the cores wait for each
-/// other at 32 band ends only (at most a row's work each).
-const RELEASE_BANDS: usize = 32;
+/// Give-backs in a solve that gives its frames back: the output pages faulted in before the
+/// first one are a 32nd of the outputs.
+const RELEASE_STEPS: usize = 32;
+
+/// Rows a worker takes at a time in such a solve: the workers take the rows in order, a few
+/// at a time, so the rows before the first unfinished one grow steadily and no worker waits
+/// for another (a band at a time, the cores waited at each band's end: 0.07 s of a
+/// half-resolution solve whose rows' robust fits differ in cost).
+const RELEASE_CHUNK_ROWS: usize = 4;
 
 /// Runs `op(state, y, row)` on every row in parallel (rayon; `init` makes each worker's
-/// state). With `release` (made from `frames`), the rows go band by band, top to bottom, and
-/// after each band the frames' rows up to its end are given back to the kernel
-/// ([`FrameRelease`]): every solver here reads a pixel's frame samples only while it solves
-/// that pixel.
+/// state). With `release` (made from `frames`), the workers take the rows in order, and the
+/// frames' rows before the first unfinished one are given back to the kernel
+/// ([`FrameRelease`]) each time they have grown by a 32nd of the image: every solver here
+/// reads a pixel's frame samples only while it solves that pixel.
 pub(super) fn for_each_row<'a, S>(
     rows: Vec<RowOut<'a>>,
     frames: &Frames,
@@ -121,20 +129,72 @@ pub(super) fn for_each_row<'a, S>(
             .for_each_init(init, |state, (y, row)| op(state, y, row));
         return;
     };
-    let band = rows.len().div_ceil(RELEASE_BANDS).max(1);
+    let height = rows.len();
     let mut rows = rows.into_iter().enumerate();
-    loop {
-        let batch: Vec<(usize, RowOut)> = rows.by_ref().take(band).collect();
-        let Some(end) = batch.last().map(|(y, _)| y + 1) else {
-            break;
-        };
-        batch
-            .into_par_iter()
-            .for_each_init(&init, |state, (y, row)| op(state, y, row));
-        // SAFETY: `release` was made from `frames` (checked by `release_rows_before`); every
-        // row before `end` is solved, no solver reads a frame row again once its output row
-        // is done, and no other thread reads the frames (`solve_releasing`'s contract).
-        unsafe { release.release_rows_before(frames, end) };
+    let chunks: Vec<Mutex<Vec<(usize, RowOut)>>> =
+        std::iter::from_fn(|| Some(rows.by_ref().take(RELEASE_CHUNK_ROWS).collect::<Vec<_>>()))
+            .take_while(|chunk| !chunk.is_empty())
+            .map(Mutex::new)
+            .collect();
+    let next = AtomicUsize::new(0);
+    let frontier = Mutex::new(Frontier {
+        done: vec![false; chunks.len()],
+        first_undone: 0,
+        given_back_to: 0,
+        step: height.div_ceil(RELEASE_STEPS).max(1),
+        release,
+    });
+    rayon::scope(|scope| {
+        for _ in 0..rayon::current_num_threads() {
+            scope.spawn(|_| {
+                let mut state = init();
+                loop {
+                    let c = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(chunk) = chunks.get(c) else {
+                        break;
+                    };
+                    let taken = std::mem::take(&mut *chunk.lock().expect("a worker panicked"));
+                    for (y, row) in taken {
+                        op(&mut state, y, row);
+                    }
+                    let mut frontier = frontier.lock().expect("a worker panicked");
+                    frontier.finished(c, frames, height);
+                }
+            });
+        }
+    });
+}
+
+/// Which row chunks of a solve that gives its frames back are done, and what was given back.
+struct Frontier<'r> {
+    done: Vec<bool>,
+    /// The first chunk not done.
+    first_undone: usize,
+    /// Rows given back so far (those before it).
+    given_back_to: usize,
+    /// Rows to grow by between two give-backs.
+    step: usize,
+    release: &'r mut FrameRelease,
+}
+
+impl Frontier<'_> {
+    /// Chunk `c` is done: gives back the rows before the first unfinished chunk once they have
+    /// grown by `step` (or reach the end).
+    fn finished(&mut self, c: usize, frames: &Frames, height: usize) {
+        self.done[c] = true;
+        while self.done.get(self.first_undone) == Some(&true) {
+            self.first_undone += 1;
+        }
+        let end = (self.first_undone * RELEASE_CHUNK_ROWS).min(height);
+        if end >= self.given_back_to + self.step || (end == height && end > self.given_back_to) {
+            // SAFETY: `release` was made from `frames` (checked by `release_rows_before`);
+            // every row before `end` is solved and no solver reads a frame row again once its
+            // output row is done; the other workers read only rows from `end` on, which no page
+            // given back holds (whole pages before `end`'s first byte); no other thread reads
+            // the frames (`solve_releasing`'s contract).
+            unsafe { self.release.release_rows_before(frames, end) };
+            self.given_back_to = end;
+        }
     }
 }
 

@@ -156,7 +156,7 @@ pub fn solve_reusing(
 }
 
 /// As [`solve_reusing`], for a caller that drops the frames afterwards: `release`, made from
-/// `input.frames`, gives each band of their rows back to the kernel once the band is solved
+/// `input.frames`, gives their rows back to the kernel as the rows are solved
 /// (see [`FrameRelease`]), so the outputs' pages reuse the frames' and the peak is lower. The
 /// frames' rows may read as zeros afterwards. Same results as [`solve`].
 ///
@@ -185,7 +185,7 @@ pub unsafe fn solve_releasing(
     } else {
         fresh_output_bytes(width * height, options)
     });
-    // With nothing to give back, no bands: the rows go in one parallel sweep.
+    // With nothing to give back, the rows need not go in order.
     let release = (!release.is_empty()).then_some(release);
     solve_with(input, options, progress, previous, release)
 }

@@ -1,6 +1,6 @@
-//! A solve that gives its frames back band by band against one that keeps them: every output
+//! A solve that gives its frames back as it goes against one that keeps them: every output
 //! the same bit for bit, on frames large enough that pages are given back mid-solve (had a
-//! band given back rows before they were solved, those pixels would read zeros and differ).
+//! give-back run ahead of the rows solved, those pixels would read zeros and differ).
 
 use super::tests_fast::assert_same;
 use super::*;
@@ -8,7 +8,7 @@ use crate::bench::{bench_noise, render_scene, SceneKind};
 use crate::progress::Silent;
 use crate::rig::Rig;
 
-/// 2 MP: each `f32` plane of a frame spans four 2 MiB pages, so bands give pages back while
+/// 2 MP: each `f32` plane of a frame spans four 2 MiB pages, so pages are given back while
 /// later rows are still being solved.
 const MP: f64 = 2.0;
 
@@ -50,7 +50,7 @@ fn kept_and_released(
 }
 
 #[test]
-fn giving_the_frames_back_band_by_band_changes_no_output() {
+fn giving_the_frames_back_as_the_rows_are_solved_changes_no_output() {
     let rig = Rig::default_rig();
     let (_, frames) = render_scene(&rig, SceneKind::Shadows, MP, &Silent).unwrap();
     let owned = owned_bytes(&frames);
