@@ -223,7 +223,7 @@ fn solve_and_write(
     clock.time(CONSISTENCY_STAGE, || {
         check_consistency(source, &frames, &lights, &noise, own_mask.as_ref(), job)
     })?;
-    let (frames, region_mask, noise, region_info) = clock.time("region", || {
+    let (mut frames, region_mask, noise, region_info) = clock.time("region", || {
         select_region(frames, &lights, noise, &job.region)
     })?;
     let mask = region_mask.or(own_mask);
@@ -233,7 +233,6 @@ fn solve_and_write(
         })?;
     }
     // Nothing reads the frames after the solve: it gives their rows back as it goes.
-    let mut frames = frames;
     let mut release = FrameRelease::new(&mut frames);
     let input = SolveInput {
         frames: &frames,

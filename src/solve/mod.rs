@@ -177,9 +177,7 @@ pub unsafe fn solve_releasing(
     release: &mut FrameRelease,
 ) -> Result<SolveResult> {
     let (width, height) = (input.frames.width, input.frames.height);
-    let reused = previous
-        .as_ref()
-        .is_some_and(|r| (r.width, r.height) == (width, height));
+    let reused = previous.as_ref().is_some_and(|r| r.has_size(width, height));
     release.limit(if reused || may_solve_twice(options) {
         0
     } else {
@@ -221,7 +219,7 @@ fn solve_with(
     check_inputs(input, options, &illumination)?;
     let kernel = kernel::Kernel::new(input, options, &illumination);
 
-    let previous = previous.filter(|r| r.width == width && r.height == height);
+    let previous = previous.filter(|r| r.has_size(width, height));
     progress.begin("solve", height as u64);
     let streaming = options.streaming();
     let reused = previous.is_some();

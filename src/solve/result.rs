@@ -40,6 +40,11 @@ pub struct SolveResult {
 }
 
 impl SolveResult {
+    /// Whether these are `width x height` planes, which a solve of that size can write into.
+    pub(super) fn has_size(&self, width: usize, height: usize) -> bool {
+        (self.width, self.height) == (width, height)
+    }
+
     /// Outputs prefilled with the unsolved defaults (`OutsideMask`, normal (0, 0, 1)), for
     /// solvers that skip pixels.
     pub(crate) fn new(width: usize, height: usize) -> Self {
