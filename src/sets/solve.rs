@@ -11,6 +11,7 @@ use crate::eval;
 use crate::fsutil::{check_outside_inputs, write_atomic, StagedDir};
 use crate::maps::derive::{self, DeriveSource, SolvedMaps};
 use crate::maps::html::derived::DERIVED_DIR;
+use crate::maps::html::MapFigures;
 use crate::maps::report::Histogram;
 use crate::maps::{self, MapOptions, Report, WrittenMaps};
 use crate::plane::{FrameRelease, Frames, Mask, SensorWindow};
@@ -35,6 +36,9 @@ pub const CONSISTENCY_STAGE: &str = "frame consistency";
 
 /// The stage of building `report.html`.
 pub const REPORT_PAGE_STAGE: &str = "report page";
+
+/// The stage of building the page's map figures while the maps are written.
+pub const PAGE_FIGURES_STAGE: &str = "report page figures";
 
 /// Where the set to solve comes from.
 enum SetRef<'a> {
@@ -91,17 +95,27 @@ enum TruthComparisonKind {
     Normals(eval::MaskedNormalComparison),
 }
 
-/// What the set's sequence produced before the report is assembled.
+/// What decoding and solving the set produced.
 struct Solved {
     result: SolveResult,
     decode: DecodeInfo,
     window: SensorWindow,
     region: Option<RegionInfo>,
+    /// The solve's mask (the region's, else the set's own), which the truth is compared over.
+    mask: Option<Mask>,
+    /// The frames' size before the region was cut out of them (the truth's size).
+    frame_size: (usize, usize),
     maps: MapOptions,
+    decode_s: f64,
+}
+
+/// What writing the maps produced.
+struct Written<'a> {
     outputs: WrittenMaps,
     truth: Option<TruthFigures>,
-    decode_s: f64,
     write_s: f64,
+    /// The page's map figures, where they were built while the maps were written.
+    figures: Option<MapFigures<'a>>,
 }
 
 fn run(
@@ -133,12 +147,13 @@ fn run(
             &*opened
         }
     };
-    let solved = solve_and_write(source, stage.path(), job, progress, buffers, &mut clock)?;
+    let solved = decode_and_solve(source, stage.path(), job, progress, buffers, &mut clock)?;
+    let written = write_outputs(source, stage.path(), job, &solved, &mut clock)?;
 
     let report_start = clock.elapsed();
-    let truth = solved.truth;
+    let truth = written.truth;
     let mut report = clock.time("report", || {
-        let outputs = relocate(solved.outputs.clone(), out);
+        let outputs = relocate(written.outputs.clone(), out);
         let location = source.location();
         let mut report = Report::new(
             location,
@@ -180,7 +195,7 @@ fn run(
     report.timings_s = BTreeMap::from([
         ("decode".to_string(), solved.decode_s),
         ("solve".to_string(), clock.seconds("solve")),
-        ("write".to_string(), solved.write_s),
+        ("write".to_string(), written.write_s),
         ("report".to_string(), report_s),
     ]);
     report.set_stages(&clock);
@@ -190,11 +205,15 @@ fn run(
         // The page embeds the report as written above; its own build time is added to the
         // report afterwards (a page cannot hold the time it took to build itself).
         clock.time(REPORT_PAGE_STAGE, || {
-            maps::html::write_report_page_from(
-                stage.path(),
-                &solved.result,
-                solved.maps.display_matrix.as_ref(),
-            )
+            // With a derive, the figures are built now: they show its height and roughness.
+            let figures = written.figures.unwrap_or_else(|| {
+                MapFigures::of_solve(
+                    stage.path(),
+                    &solved.result,
+                    solved.maps.display_matrix.as_ref(),
+                )
+            });
+            maps::html::write_report_page_from(stage.path(), figures)
         })?;
         report.set_stages(&clock);
         report.write(&report_path)?;
@@ -204,9 +223,9 @@ fn run(
     Ok(report)
 }
 
-/// Decodes, selects the region, solves and writes the maps into `dir` (the staged folder),
-/// reading the set's ground truth while the maps are written.
-fn solve_and_write(
+/// Decodes, selects the region and solves (the frame previews go into `dir`, the staged
+/// folder).
+fn decode_and_solve(
     source: &dyn SetSource,
     dir: &Path,
     job: &SolveJob,
@@ -250,43 +269,74 @@ fn solve_and_write(
     let window = frames.window;
     clock.time("free frames", || drop(frames));
 
-    let map_options = MapOptions {
+    let maps = MapOptions {
         display_matrix: job.maps.display_matrix.or(decode.camera_to_srgb),
         ..job.maps.clone()
     };
-    // The ground truth is read and compared with while the maps are written: reading EXRs,
-    // comparing and writing share the cores better than each alone.
-    let write_start = clock.elapsed();
-    let mut stages = maps::MAP_STAGES.to_vec();
-    stages.extend([TRUTH_READ_STAGE, TRUTH_COMPARE_STAGE]);
-    let (outputs, truth) = clock.time_shared(&stages, "write maps", |busy| {
-        rayon::join(
-            || maps::write_maps_timed(&result, dir, &map_options, busy),
-            || -> Result<Option<TruthFigures>> {
-                let truth = busy.time(TRUTH_READ_STAGE, || source.truth(width, height, &decode))?;
-                truth
-                    .map(|truth| {
-                        busy.time(TRUTH_COMPARE_STAGE, || {
-                            compare(&result, truth, mask.as_ref(), job)
-                        })
-                    })
-                    .transpose()
-            },
-        )
-    });
-    let outputs = outputs?;
-    let truth = truth?;
-    let write_s = clock.elapsed() - write_start;
     Ok(Solved {
         result,
         decode,
         window,
         region: (!job.region.is_full()).then_some(region_info),
-        maps: map_options,
-        outputs,
-        truth,
+        mask,
+        frame_size: (width, height),
+        maps,
         decode_s,
-        write_s,
+    })
+}
+
+/// Writes the maps into `dir` (the staged folder), reading the set's ground truth and
+/// comparing with it meanwhile, and building the page's map figures when the page is asked
+/// for and no derive is (the page shows a derive, which comes after the maps).
+fn write_outputs<'a>(
+    source: &dyn SetSource,
+    dir: &Path,
+    job: &SolveJob,
+    solved: &'a Solved,
+    clock: &mut StageClock,
+) -> Result<Written<'a>> {
+    let result = &solved.result;
+    let (width, height) = solved.frame_size;
+    let figures_now = job.maps.report_html && job.derive.is_none();
+    // Reading EXRs, comparing, building figures and writing share the cores better than each
+    // alone: the map writers wait for the disk.
+    let write_start = clock.elapsed();
+    let mut stages = maps::MAP_STAGES.to_vec();
+    stages.extend([TRUTH_READ_STAGE, TRUTH_COMPARE_STAGE, PAGE_FIGURES_STAGE]);
+    let (outputs, (truth, figures)) = clock.time_shared(&stages, "write maps", |busy| {
+        rayon::join(
+            || maps::write_maps_timed(result, dir, &solved.maps, busy),
+            || {
+                rayon::join(
+                    || -> Result<Option<TruthFigures>> {
+                        let truth = busy.time(TRUTH_READ_STAGE, || {
+                            source.truth(width, height, &solved.decode)
+                        })?;
+                        truth
+                            .map(|truth| {
+                                busy.time(TRUTH_COMPARE_STAGE, || {
+                                    compare(result, truth, solved.mask.as_ref(), job)
+                                })
+                            })
+                            .transpose()
+                    },
+                    || {
+                        figures_now.then(|| {
+                            busy.time(PAGE_FIGURES_STAGE, || {
+                                let matrix = solved.maps.display_matrix.as_ref();
+                                MapFigures::of_solve(dir, result, matrix)
+                            })
+                        })
+                    },
+                )
+            },
+        )
+    });
+    Ok(Written {
+        outputs: outputs?,
+        truth: truth?,
+        write_s: clock.elapsed() - write_start,
+        figures,
     })
 }
 

@@ -11,6 +11,7 @@
 
 mod class_counts;
 pub mod derived;
+mod figures;
 pub mod frames;
 pub mod images;
 mod loupe;
@@ -20,6 +21,7 @@ mod textures;
 mod warnings;
 
 use class_counts::class_counts;
+pub use figures::MapFigures;
 
 pub use template::escape;
 use template::fill;
@@ -33,7 +35,6 @@ use crate::error::{Error, Result};
 use crate::fsutil::write_atomic;
 use crate::maps::encode::NormalConvention;
 use crate::maps::REPORT_FILE;
-use crate::solve::SolveResult;
 use images::{FullMaps, Reduction};
 use loupe::loupe_parts;
 use relight::{RelightParams, RelightTextures};
@@ -140,15 +141,11 @@ pub fn write_report_page_with(dir: &Path, derived: Option<&Path>) -> Result<Page
 }
 
 /// [`write_report_page`] for a solve whose maps are still in memory (`psscan solve`): the
-/// page is built from them ([`FullMaps::from_result`]) instead of from the files just
-/// written, the rest (report.json, frame previews, a derive) from the folder.
-pub fn write_report_page_from(
-    dir: &Path,
-    result: &SolveResult,
-    display_matrix: Option<&[[f64; 3]; 3]>,
-) -> Result<PageSummary> {
-    let maps = FullMaps::from_result(result, display_matrix);
-    write_page(dir, build_page_from(dir, None, Some(maps)))
+/// page's map figures were built from them ([`MapFigures::of_solve`]) instead of from the
+/// files just written, the rest (report.json, frame previews) comes from the folder.
+pub fn write_report_page_from(dir: &Path, figures: MapFigures) -> Result<PageSummary> {
+    let report = read_report(dir);
+    write_page(dir, build_page_from(dir, report, figures))
 }
 
 fn write_page(dir: &Path, (html, mut summary): (String, PageSummary)) -> Result<PageSummary> {
@@ -419,26 +416,19 @@ fn frames_part(dir: &Path, report: Option<&Value>) -> (String, Value) {
 fn build_parts(
     dir: &Path,
     report: std::result::Result<&Value, &str>,
-    derived: Option<&Path>,
-    maps: Option<FullMaps>,
+    figures: MapFigures,
 ) -> (Parts, PageSummary) {
-    let maps = maps.unwrap_or_else(|| FullMaps::read(dir, normal_convention(report.ok())));
-    let r = Reduction::for_size(maps.width, maps.height);
-    let derived = derived::locate(dir, derived);
-    // The display-size parts are independent of each other: built side by side.
-    let ((textures, (map_html, derived_maps)), (classes, (frames, frames_data))) = rayon::join(
-        || {
-            let textures = textures::relight_textures(&maps, &r);
-            let map_html = map_parts(&maps, textures.as_ref(), derived.as_deref());
-            (textures, map_html)
-        },
-        || {
-            rayon::join(
-                || warnings::render(&warnings::collect(report, &maps)) + &class_parts(&maps, &r),
-                || frames_part(dir, report.ok()),
-            )
-        },
-    );
+    let MapFigures {
+        maps,
+        reduction: r,
+        derived,
+        textures,
+        map_html,
+        derived_maps,
+        classes,
+    } = figures;
+    let classes = warnings::render(&warnings::collect(report, &maps)) + &classes;
+    let (frames, frames_data) = frames_part(dir, report.ok());
     // The loupe takes what the rest of the page leaves of the budget (the report's JSON, the
     // template, script and shaders, and a margin for the titles).
     let rest = map_html.len()
@@ -502,17 +492,19 @@ pub fn build_page(dir: &Path) -> (String, PageSummary) {
 
 /// [`build_page`] showing the derive in `derived` (default: the solve's own `derived/`).
 pub fn build_page_with(dir: &Path, derived: Option<&Path>) -> (String, PageSummary) {
-    build_page_from(dir, derived, None)
+    let report = read_report(dir);
+    let maps = FullMaps::read(dir, normal_convention(report.as_ref().ok()));
+    let figures = MapFigures::build(maps, derived::locate(dir, derived));
+    build_page_from(dir, report, figures)
 }
 
-/// [`build_page_with`] from `maps` where given, else from the maps in `dir`.
+/// The page from `figures` and the rest of what `dir` holds.
 fn build_page_from(
     dir: &Path,
-    derived: Option<&Path>,
-    maps: Option<FullMaps>,
+    report: std::result::Result<Value, String>,
+    figures: MapFigures,
 ) -> (String, PageSummary) {
-    let report = read_report(dir);
-    let (parts, summary) = build_parts(dir, report.as_ref().map_err(String::as_str), derived, maps);
+    let (parts, summary) = build_parts(dir, report.as_ref().map_err(String::as_str), figures);
     // The page is built in the solve's staging folder, whose name is temporary: name it after
     // the set it solved.
     let set_name = report
