@@ -40,6 +40,25 @@ static STAGING: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 /// again in the same run keeps what the run has written there since.
 static CLAIMED: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 
+/// Output folders this process has put in place ([`StagedDir::commit`]), for the message of
+/// a run stopped after that: they are the new outputs, not unfinished ones.
+static COMMITTED: Mutex<Vec<CommittedOutput>> = Mutex::new(Vec::new());
+
+/// An output folder a run put in place.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CommittedOutput {
+    /// Where the output now is.
+    pub path: PathBuf,
+    /// Where the earlier output it replaced was set aside until removed (none: there was
+    /// none).
+    pub replaced: Option<PathBuf>,
+}
+
+/// The output folders this process has put in place so far.
+pub fn committed_outputs() -> Vec<CommittedOutput> {
+    COMMITTED.lock().unwrap_or_else(|e| e.into_inner()).clone()
+}
+
 fn staging() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
     STAGING.lock().unwrap_or_else(|e| e.into_inner())
 }
@@ -513,6 +532,15 @@ impl StagedDir {
         if let Some(old) = &old {
             list.push(old.clone());
         }
+        // Recorded before the registry is let go: a signal handler that got it after the
+        // renames finds the output here.
+        COMMITTED
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(CommittedOutput {
+                path: self.target.clone(),
+                replaced: old.clone(),
+            });
         drop(list);
         if let Some(old) = old {
             let _ = fs::remove_dir_all(&old);

@@ -6,10 +6,12 @@
 //! is kept said on stderr, exit 130 (SIGINT) or 143 (SIGTERM).
 
 use std::io::{IsTerminal, Write};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicI32, Ordering};
 use std::sync::{Mutex, OnceLock};
 
 use psscan::capture::Interrupt;
+use psscan::fsutil::CommittedOutput;
 
 use super::progress::BarSlot;
 
@@ -119,29 +121,115 @@ fn stop_now(signal: i32, bars: &BarSlot) -> ! {
         // Back to column 0 on a clean line, cursor shown.
         let _ = write!(err, "\r\x1b[2K\x1b[?25h");
     }
+    // Taken after the removal, which waits for an output being renamed into place.
     let removed = psscan::fsutil::remove_staging();
+    let committed = psscan::fsutil::committed_outputs();
     let doing = DOING.lock().map(|d| d.clone()).unwrap_or_default();
-    let _ = writeln!(
-        err,
-        "psscan: {}: stopped {doing} before it finished",
-        name(signal)
+    let message = stop_message(
+        name(signal),
+        &doing,
+        &removed,
+        &committed,
+        COOPERATIVE.get().is_some(),
     );
-    for path in &removed {
-        let _ = writeln!(err, "  removed unfinished {}", path.display());
-    }
-    let _ = writeln!(
-        err,
-        "  kept: everything that was there before the run (an earlier output under the same \
-         name is untouched){}",
-        if COOPERATIVE.get().is_some() {
-            "; every frame or step already saved"
-        } else {
-            ""
-        }
-    );
+    let _ = write!(err, "{message}");
     let _ = err.flush();
     drop(err);
     // SAFETY: _exit ends the process at once: no destructor or other thread may write into a
     // folder just removed.
     unsafe { libc::_exit(128 + signal) }
+}
+
+/// What a stopped run says: what it removed, and what it had already finished (an output put
+/// in place before the signal is the new output: the earlier one under its name is gone).
+fn stop_message(
+    signal: &str,
+    doing: &str,
+    removed: &[PathBuf],
+    committed: &[CommittedOutput],
+    cooperative: bool,
+) -> String {
+    let mut out = format!("psscan: {signal}: stopped {doing} before it finished\n");
+    for c in committed {
+        let replaced = if c.replaced.is_some() {
+            " (it replaced the earlier output there)"
+        } else {
+            ""
+        };
+        out += &format!(
+            "  finished before the stop and in place: {}{replaced}\n",
+            c.path.display()
+        );
+    }
+    for path in removed {
+        match committed.iter().find(|c| c.replaced.as_ref() == Some(path)) {
+            Some(c) => {
+                out += &format!(
+                    "  removed the earlier output that {} replaced (set aside as {})\n",
+                    c.path.display(),
+                    path.display()
+                )
+            }
+            None => out += &format!("  removed unfinished {}\n", path.display()),
+        }
+    }
+    out += &format!(
+        "  kept: everything {}that was there before the run (an earlier output under the same \
+         name is untouched{}){}\n",
+        if committed.is_empty() { "" } else { "else " },
+        if committed.is_empty() {
+            ""
+        } else {
+            " unless named above"
+        },
+        if cooperative {
+            "; every frame or step already saved"
+        } else {
+            ""
+        }
+    );
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_stop_before_any_commit_says_every_earlier_output_is_untouched() {
+        let removed = [PathBuf::from("/o.partial-1-0")];
+        let text = stop_message("SIGINT (Ctrl-C)", "`psscan solve`", &removed, &[], false);
+        assert!(text.contains("removed unfinished /o.partial-1-0"), "{text}");
+        assert!(text.contains("kept: everything that was there before the run (an earlier output under the same name is untouched)"), "{text}");
+        assert!(!text.contains("finished before the stop"), "{text}");
+    }
+
+    #[test]
+    fn a_stop_after_a_commit_names_the_new_output_and_the_replaced_one() {
+        let committed = [CommittedOutput {
+            path: PathBuf::from("/o"),
+            replaced: Some(PathBuf::from("/o.old-1-3")),
+        }];
+        let removed = [PathBuf::from("/o.old-1-3")];
+        let text = stop_message(
+            "SIGINT (Ctrl-C)",
+            "`psscan solve`",
+            &removed,
+            &committed,
+            false,
+        );
+        assert!(
+            text.contains(
+                "finished before the stop and in place: /o (it replaced the earlier output there)"
+            ),
+            "{text}"
+        );
+        assert!(
+            text.contains("removed the earlier output that /o replaced (set aside as /o.old-1-3)"),
+            "{text}"
+        );
+        assert!(!text.contains("removed unfinished"), "{text}");
+        assert!(text.contains("kept: everything else"), "{text}");
+        assert!(text.contains("untouched unless named above"), "{text}");
+    }
 }

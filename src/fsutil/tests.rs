@@ -49,6 +49,33 @@ fn a_staged_folder_appears_whole_or_not_at_all() {
     assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
 }
 
+/// A stopped run names what it had already put in place (the registry is per process and
+/// other tests commit too: only this test's folders are looked for).
+#[test]
+fn a_committed_output_is_recorded_with_the_earlier_output_it_replaced() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("maps");
+    let ours = |c: &CommittedOutput| c.path == out;
+    let stage = StagedDir::create(&out, false, &[]).unwrap();
+    assert!(!committed_outputs().iter().any(ours));
+    stage.commit(false, &[]).unwrap();
+    let first: Vec<_> = committed_outputs().into_iter().filter(ours).collect();
+    assert_eq!(first.len(), 1);
+    assert_eq!(first[0].replaced, None);
+    let stage = StagedDir::create(&out, true, &[]).unwrap();
+    stage.commit(true, &[]).unwrap();
+    let both: Vec<_> = committed_outputs().into_iter().filter(ours).collect();
+    assert_eq!(both.len(), 2);
+    let set_aside = both[1]
+        .replaced
+        .as_ref()
+        .expect("the first output was replaced");
+    assert!(
+        set_aside.starts_with(dir.path()) && !set_aside.exists(),
+        "{set_aside:?}"
+    );
+}
+
 #[test]
 fn a_copied_in_record_or_report_is_no_proof_of_ownership() {
     let dir = tempfile::tempdir().unwrap();
