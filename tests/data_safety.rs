@@ -485,6 +485,63 @@ fn sigterm_during_solve_removes_the_staged_maps_and_exits_143() {
     assert!(!maps.exists());
 }
 
+/// Stopped between two sets of a batch: the set already solved is in place and the message
+/// says so (it had called the earlier output under every name untouched).
+#[test]
+fn sigint_between_the_sets_of_a_batch_names_the_finished_output() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sets = ["a", "b"].map(|name| tmp.path().join(name));
+    for set in &sets {
+        let mut args = vec!["synth", "--out", s(set)];
+        args.extend(LARGE);
+        ok(&psscan(&args));
+    }
+    let maps = tmp.path().join("maps");
+    let child = spawn(&["solve", s(&sets[0]), s(&sets[1]), "--out", s(&maps), "-q"]);
+    // Signal once one set's output is in place and the other's is staged.
+    let start = Instant::now();
+    let finished = loop {
+        let staged = |name: &str| {
+            let prefix = format!("{name}.partial-");
+            std::fs::read_dir(&maps).is_ok_and(|entries| {
+                entries
+                    .flatten()
+                    .any(|e| e.file_name().to_string_lossy().starts_with(&prefix))
+            })
+        };
+        let done = |name: &str| maps.join(name).join("report.json").is_file();
+        if let Some((finished, _)) = [("a", "b"), ("b", "a")]
+            .into_iter()
+            .find(|&(one, other)| done(one) && staged(other))
+        {
+            break maps.join(finished);
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "no such moment");
+        std::thread::sleep(Duration::from_millis(1));
+    };
+    // SAFETY: signalling our own child.
+    unsafe {
+        libc::kill(child.id() as libc::pid_t, libc::SIGINT);
+    }
+    let done = child.wait_with_output().unwrap();
+    let err = stderr(&done);
+    assert_eq!(done.status.code(), Some(130), "{err}");
+    assert!(
+        err.contains(&format!(
+            "finished before the stop and in place: {}",
+            finished.display()
+        )),
+        "{err}"
+    );
+    assert!(
+        err.contains("removed unfinished") && err.contains(".partial-"),
+        "{err}"
+    );
+    assert!(err.contains("kept: everything else"), "{err}");
+    assert!(finished.join("report.json").is_file());
+    assert_eq!(staging_in(tmp.path()), Vec::<PathBuf>::new());
+}
+
 #[test]
 fn staging_a_killed_synth_left_is_removed_by_the_next_run() {
     let tmp = tempfile::tempdir().unwrap();
