@@ -431,6 +431,10 @@ fn signal_when_staging(child: &Child, root: &Path, out: &Path, signal: i32) {
         );
         std::thread::sleep(Duration::from_millis(1));
     }
+    send(child, signal);
+}
+
+fn send(child: &Child, signal: i32) {
     // SAFETY: signalling our own child.
     unsafe {
         libc::kill(child.id() as libc::pid_t, signal);
@@ -519,10 +523,7 @@ fn sigint_between_the_sets_of_a_batch_names_the_finished_output() {
         assert!(start.elapsed() < Duration::from_secs(60), "no such moment");
         std::thread::sleep(Duration::from_millis(1));
     };
-    // SAFETY: signalling our own child.
-    unsafe {
-        libc::kill(child.id() as libc::pid_t, libc::SIGINT);
-    }
+    send(&child, libc::SIGINT);
     let done = child.wait_with_output().unwrap();
     let err = stderr(&done);
     assert_eq!(done.status.code(), Some(130), "{err}");
