@@ -20,7 +20,7 @@ use crate::raw::DecodeInfo;
 use crate::region::{region_truth, select_region, RegionInfo};
 use crate::solve::consistency::{frame_consistency, BLOCKS};
 use crate::solve::{self, LightSource, NoiseModel, SolveInput, SolveResult};
-use crate::timing::StageClock;
+use crate::timing::{Busy, StageClock};
 
 /// The stage of reading a set's ground truth (beside the maps' writing).
 pub const TRUTH_READ_STAGE: &str = "read truth";
@@ -296,7 +296,6 @@ fn write_outputs<'a>(
     clock: &mut StageClock,
 ) -> Result<Written<'a>> {
     let result = &solved.result;
-    let (width, height) = solved.frame_size;
     let figures_now = job.maps.report_html && job.derive.is_none();
     // Reading EXRs, comparing, building figures and writing share the cores better than each
     // alone: the map writers wait for the disk.
@@ -308,18 +307,7 @@ fn write_outputs<'a>(
             || maps::write_maps_timed(result, dir, &solved.maps, busy),
             || {
                 rayon::join(
-                    || -> Result<Option<TruthFigures>> {
-                        let truth = busy.time(TRUTH_READ_STAGE, || {
-                            source.truth(width, height, &solved.decode)
-                        })?;
-                        truth
-                            .map(|truth| {
-                                busy.time(TRUTH_COMPARE_STAGE, || {
-                                    compare(result, truth, solved.mask.as_ref(), job)
-                                })
-                            })
-                            .transpose()
-                    },
+                    || truth_figures(source, solved, job, busy),
                     || {
                         figures_now.then(|| {
                             busy.time(PAGE_FIGURES_STAGE, || {
@@ -338,6 +326,26 @@ fn write_outputs<'a>(
         write_s: clock.elapsed() - write_start,
         figures,
     })
+}
+
+/// Reads the set's ground truth, where it has one, and compares the solve with it.
+fn truth_figures(
+    source: &dyn SetSource,
+    solved: &Solved,
+    job: &SolveJob,
+    busy: &Busy,
+) -> Result<Option<TruthFigures>> {
+    let (width, height) = solved.frame_size;
+    let truth = busy.time(TRUTH_READ_STAGE, || {
+        source.truth(width, height, &solved.decode)
+    })?;
+    truth
+        .map(|truth| {
+            busy.time(TRUTH_COMPARE_STAGE, || {
+                compare(&solved.result, truth, solved.mask.as_ref(), job)
+            })
+        })
+        .transpose()
 }
 
 /// Refuses a set with a frame that disagrees with what the other frames say the surface is
