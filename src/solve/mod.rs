@@ -181,22 +181,15 @@ pub unsafe fn solve_releasing(
     release.limit(if reused || may_solve_twice(options) {
         0
     } else {
-        fresh_output_bytes(width * height, options)
+        SolveResult::fresh_bytes_touched(
+            width * height,
+            options.predict_error,
+            !options.streaming(),
+        )
     });
     // With nothing to give back, the rows need not go in order.
     let release = (!release.is_empty()).then_some(release);
     solve_with(input, options, progress, previous, release)
-}
-
-/// Bytes of fresh output memory a solve into new planes first touches while it runs: the
-/// planes every kernel writes at every pixel (normal, albedo, residual, condition, lights
-/// used, status, and the predicted error where asked for), less what the exact kernel's
-/// prefill touches before it starts (the normal's z, the status). The `fit` plane, written
-/// only where a robust fit runs, is left out.
-fn fresh_output_bytes(pixels: usize, options: &SolveOptions) -> usize {
-    let planes = 8 + options.predict_error as usize;
-    let prefilled = if options.streaming() { 0 } else { 4 + 1 };
-    pixels * (4 * planes + 2 - prefilled)
 }
 
 fn solve_with(

@@ -45,6 +45,21 @@ impl SolveResult {
         (self.width, self.height) == (width, height)
     }
 
+    /// Bytes of fresh output memory a solve into new planes first touches while it runs: the
+    /// planes every kernel writes at every pixel (normal, albedo, residual, condition, lights
+    /// used, status, and the predicted error where asked for), less what [`SolveResult::new`]'s
+    /// prefill (for the exact kernel: `prefilled`) touches before it starts (the normal's z,
+    /// the status). The `fit` plane, written only where a robust fit runs, is left out.
+    pub(super) fn fresh_bytes_touched(
+        pixels: usize,
+        predicted_error: bool,
+        prefilled: bool,
+    ) -> usize {
+        let planes = 8 + predicted_error as usize;
+        let prefill = if prefilled { 4 + 1 } else { 0 };
+        pixels * (4 * planes + 2 - prefill)
+    }
+
     /// Outputs prefilled with the unsolved defaults (`OutsideMask`, normal (0, 0, 1)), for
     /// solvers that skip pixels.
     pub(crate) fn new(width: usize, height: usize) -> Self {

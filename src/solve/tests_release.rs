@@ -81,7 +81,9 @@ fn giving_the_frames_back_as_the_rows_are_solved_changes_no_output() {
         }
         // What the outputs fault in, in whole buffers (a plane's `f32`s at most short), less
         // the partial 2 MiB pages at each buffer's ends (two per buffer at most).
-        let limit = fresh_output_bytes(pixels, &options).min(owned);
+        let limit =
+            SolveResult::fresh_bytes_touched(pixels, options.predict_error, !options.streaming())
+                .min(owned);
         let short = pixels * 4 + frames.lights.len() * 4 * 2 * (2 << 20);
         assert!(
             bytes <= limit && bytes + short >= limit,
