@@ -15,6 +15,12 @@ psscan configuration is also given as a multiple of its decode stage (the frames
 the floor the rest of the command is measured against), and issue 18's three time targets are
 printed as met or not met.
 
+Memory: each run's peak resident set (the child's `ru_maxrss`, from `os.wait4`), its median
+over the rounds, and its multiple of the set's decoded frames: every frame of the set (lights
+and dark) as its decoder gives it, 16-bit samples, one per pixel for a RAW (CFA) set and three
+for a dn16 one (`frames x width x height x samples x 2` bytes, from the manifest). Issue 18
+asks for a peak of at most 1.5x that.
+
 Usage: bench_e2e.py [--psscan BIN] [--python PY] [--width W --height H] [--rounds N]
                     [--work DIR] [--keep] [--json] [--dng SET] [--dn16 SET]
 (--dng and --dn16 time sets rendered before, of the same scene, instead of rendering them.)
@@ -30,18 +36,38 @@ import subprocess
 import sys
 import tempfile
 import time
+import tomllib
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 PEER = os.path.join(HERE, "peer_rawpy.py")
 
 
-def run(cmd, **kw):
-    start = time.perf_counter()
-    done = subprocess.run(cmd, capture_output=True, text=True, **kw)
-    wall = time.perf_counter() - start
-    if done.returncode != 0:
-        sys.exit(f"bench_e2e: {' '.join(cmd)} failed ({done.returncode}):\n{done.stderr}")
-    return wall, done.stdout
+def run(cmd):
+    """Runs `cmd`; its wall time, standard output and peak resident set in bytes. The output
+    goes through files, not pipes, so that the child can be reaped with `os.wait4`, whose
+    resource usage is that child's alone."""
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        start = time.perf_counter()
+        child = subprocess.Popen(cmd, stdout=out, stderr=err)
+        _, status, usage = os.wait4(child.pid, 0)
+        wall = time.perf_counter() - start
+        child.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        stdout, stderr = out.read().decode(), err.read().decode(errors="replace")
+    if child.returncode != 0:
+        sys.exit(f"bench_e2e: {' '.join(cmd)} failed ({child.returncode}):\n{stderr}")
+    # Linux reports ru_maxrss in KiB.
+    return wall, stdout, usage.ru_maxrss * 1024
+
+
+def decoded_frame_bytes(set_dir):
+    """The bytes of a set's frames as decoded: 16-bit samples of every frame (lights and
+    dark), one per pixel for a RAW set's CFA and three for a dn16 set's RGB."""
+    manifest = tomllib.load(open(os.path.join(set_dir, "manifest.toml"), "rb"))
+    image = manifest["image"]
+    samples = 1 if image.get("encoding") == "raw" else 3
+    return len(manifest["frames"]) * image["width"] * image["height"] * samples * 2
 
 
 def peer_available(python):
@@ -53,32 +79,36 @@ def peer_available(python):
 
 
 def synth(psscan, out, encoding, width, height):
-    wall, _ = run([psscan, "--quiet", "synth", "--out", out, "--width", str(width),
+    wall, _, _ = run([psscan, "--quiet", "synth", "--out", out, "--width", str(width),
                    "--height", str(height), "--encoding", encoding, "--force"])
     return wall
 
 
 def solve(psscan, set_dir, out, extra):
     shutil.rmtree(out, ignore_errors=True)
-    wall, stdout = run([psscan, "--quiet", "solve", set_dir, "--out", out, "--json"] + extra)
+    wall, stdout, peak = run([psscan, "--quiet", "solve", set_dir, "--out", out, "--json"]
+                             + extra)
     report = json.loads(stdout)
     return {"wall_s": wall, "stages": report.get("stages", []),
-            "total_s": report.get("timings_s", {}).get("total")}
+            "total_s": report.get("timings_s", {}).get("total"), "peak_rss_bytes": peak}
 
 
 def peer(python, set_dir, out_png):
-    wall, stdout = run([python, PEER, set_dir, out_png])
+    wall, stdout, peak = run([python, PEER, set_dir, out_png])
     figures = json.loads(stdout.strip().splitlines()[-1])
     stages = [{"stage": k[:-2], "seconds": v} for k, v in figures.items()
               if k.endswith("_s") and k != "total_s"]
-    return {"wall_s": wall, "stages": stages, "total_s": figures.get("total_s")}
+    return {"wall_s": wall, "stages": stages, "total_s": figures.get("total_s"),
+            "peak_rss_bytes": peak}
 
 
 def median_run(runs):
     walls = [r["wall_s"] for r in runs]
     mid = statistics.median_low(walls)
     chosen = next(r for r in runs if r["wall_s"] == mid)
-    return dict(chosen, wall_s=statistics.median(walls), walls_s=walls)
+    peaks = [r["peak_rss_bytes"] for r in runs]
+    return dict(chosen, wall_s=statistics.median(walls), walls_s=walls,
+                peak_rss_bytes=statistics.median(peaks), peaks_rss_bytes=peaks)
 
 
 def stage_seconds(result, stage):
@@ -112,6 +142,14 @@ def table(results):
 DECODE_STAGES = {"dng full": "decode", "dng half": "decode", "dn16 full": "decode + linearize"}
 
 
+# Issue 18's memory target: peak resident set over the decoded frames.
+MEMORY_TARGET = 1.5
+
+
+def memory_ratio(result):
+    return result["peak_rss_bytes"] / result["decoded_frame_bytes"]
+
+
 def targets(results):
     """Issue 18's targets, each with the measured figure and whether it is met (None where a
     figure is missing, e.g. the peer was skipped)."""
@@ -125,6 +163,11 @@ def targets(results):
          "unit": "s", "met": results["dng half"]["wall_s"] < 2.0},
         {"target": "dn16 full under 5 s wall", "figure": results["dn16 full"]["wall_s"],
          "unit": "s", "met": results["dn16 full"]["wall_s"] < 5.0},
+    ] + [
+        {"target": f"{name} peak memory at most {MEMORY_TARGET}x the decoded frames",
+         "figure": memory_ratio(results[name]), "unit": "x",
+         "met": memory_ratio(results[name]) <= MEMORY_TARGET}
+        for name in DECODE_STAGES
     ]
 
 
@@ -137,6 +180,19 @@ def floor_lines(results):
             wall = results[name]["wall_s"]
             lines.append(f"{name}: {wall:.2f} s wall, {wall / decode:.2f}x its '{stage}' "
                          f"stage ({decode:.2f} s)")
+    return lines
+
+
+def memory_lines(results):
+    """Each configuration's median peak resident set, and for psscan's its multiple of the
+    set's decoded frames."""
+    lines = []
+    for name, r in results.items():
+        line = f"{name}: peak memory {r['peak_rss_bytes'] / 1e9:.3f} GB"
+        if "decoded_frame_bytes" in r:
+            line += (f", {memory_ratio(r):.2f}x the decoded frames "
+                     f"({r['decoded_frame_bytes'] / 1e9:.3f} GB)")
+        lines.append(line)
     return lines
 
 
@@ -190,6 +246,8 @@ def main():
         results = {name: median_run(r) for name, r in runs.items()}
         for name, stage in DECODE_STAGES.items():
             results[name]["decode_s"] = stage_seconds(results[name], stage)
+        for name, set_dir in [("dng full", dng), ("dng half", dng), ("dn16 full", dn16)]:
+            results[name]["decoded_frame_bytes"] = decoded_frame_bytes(set_dir)
         if args.json:
             print(json.dumps({"width": args.width, "height": args.height,
                               "rounds": args.rounds, "note": note, "results": results,
@@ -201,7 +259,7 @@ def main():
                 p = results["peer (half)"]["wall_s"]
                 for name in ("dng full", "dng half"):
                     print(f"{name}: {p / results[name]['wall_s']:.2f}x the peer's speed")
-            for line in floor_lines(results):
+            for line in floor_lines(results) + memory_lines(results):
                 print(line)
             for t in targets(results):
                 verdict = {True: "met", False: "not met", None: "not measured"}[t["met"]]
