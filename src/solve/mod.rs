@@ -60,6 +60,11 @@ pub enum PixelFit {
     Sheen = 2,
 }
 
+// SAFETY: a fieldless `repr(u8)` enum is one initialised byte, its number, with no padding:
+// what bytemuck's `NoUninit` asks, so that a slice of fits can be read as their numbers in
+// place (the report page reads a 16 MP solve's classes without a copy).
+unsafe impl bytemuck::NoUninit for PixelFit {}
+
 impl PixelFit {
     /// Every fit, in the order of their codes.
     pub const ALL: [PixelFit; 3] = [PixelFit::LeastSquares, PixelFit::Robust, PixelFit::Sheen];
@@ -107,6 +112,9 @@ pub enum PixelStatus {
     /// The remaining lights are too close to coplanar to determine a normal.
     Degenerate = 5,
 }
+
+// SAFETY: as for `PixelFit` above: a fieldless `repr(u8)` enum, one initialised byte.
+unsafe impl bytemuck::NoUninit for PixelStatus {}
 
 impl PixelStatus {
     /// Every status, in the order of their codes.

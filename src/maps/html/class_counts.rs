@@ -1,14 +1,14 @@
 //! The page's class legends count: how many pixels hold each status or fit class.
 
-use super::images::{self, FullMaps, SOLVED};
+use super::images::{FullMaps, SOLVED};
 
-/// How many pixels of `plane` hold each class below `n` (the solved ones only, with
-/// `solved_only`), counted on every core in blocks of plain loops over slices (a fold over 16 M
+/// How many pixels of `classes` (a class plane's numbers) hold each class below `n` (the
+/// solved ones only, with `solved_only`), counted on every core in blocks of plain loops over slices (a fold over 16 M
 /// indexed values, moving its count vector through every step, took a seventh of the page's
 /// time). Four counts per class, taken in turn: one count bumped by every pixel waits on its
 /// own last store, and nearly every pixel is in the same class.
 pub(super) fn class_counts(
-    plane: &crate::plane::Plane,
+    classes: &[u8],
     maps: &FullMaps,
     solved_only: bool,
     n: usize,
@@ -16,12 +16,11 @@ pub(super) fn class_counts(
     use rayon::prelude::*;
     const BLOCK: usize = 1 << 16;
     let status = maps.status().filter(|_| solved_only);
-    let count_block = |(b, values): (usize, &[f32])| {
+    let count_block = |(b, values): (usize, &[u8])| {
         let mut counts = [[0usize; 256]; 4];
         let start = b * BLOCK;
-        let mut count = |j: usize, v: f32, kept: bool| {
-            // `v as usize` saturates: NaN and negative values are 0, so they are tested first.
-            counts[j % 4][images::class_of(v)] += (kept && v >= 0.0) as usize;
+        let mut count = |j: usize, v: u8, kept: bool| {
+            counts[j % 4][v as usize] += kept as usize;
         };
         match status {
             Some(status) => {
@@ -42,8 +41,7 @@ pub(super) fn class_counts(
         }
         total
     };
-    let totals = plane
-        .data
+    let totals = classes
         .par_chunks(BLOCK)
         .enumerate()
         .map(count_block)

@@ -31,15 +31,47 @@ pub struct FullMaps<'a> {
     /// World-frame normals, OpenGL convention; `None` where the map is missing. Borrowed from
     /// a solve still in memory ([`FullMaps::from_result`]).
     pub normal: Option<[Cow<'a, Plane>; 3]>,
-    /// `status`, `fit`, `predicted_error_deg`, `residual` of `confidence.exr`; the last two
-    /// borrowed from a solve still in memory.
-    pub confidence: Option<[Cow<'a, Plane>; 4]>,
+    /// `confidence.exr`'s planes; borrowed from a solve still in memory.
+    pub confidence: Option<Confidence<'a>>,
     /// What could not be read, in words (file and cause).
     pub missing: Vec<String>,
 }
 
-/// A solved pixel's value in the confidence map's status plane.
-pub const SOLVED: f32 = crate::solve::PixelStatus::Solved as u8 as f32;
+/// The planes of `confidence.exr` the page shows. The class planes are bytes, as the solve
+/// holds them: as `f32` planes, the file's type, they were 128 MB of fresh memory at 16 MP
+/// beside a solve that already held the classes.
+pub struct Confidence<'a> {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// Each pixel's `PixelStatus` as its number ([`SOLVED`] where solved).
+    pub status: Cow<'a, [u8]>,
+    /// Each pixel's `PixelFit` as its number.
+    pub fit: Cow<'a, [u8]>,
+    /// Predicted normal error in degrees.
+    pub predicted_error_deg: Cow<'a, Plane>,
+    /// RMS residual of the luminance fit.
+    pub residual: Cow<'a, Plane>,
+}
+
+/// A solved pixel's number in the status plane.
+pub const SOLVED: u8 = crate::solve::PixelStatus::Solved as u8;
+
+/// The number of a class plane's value in a file that holds no class there (NaN, negative, or
+/// past the last number a byte holds): no class has it, so it is counted in no legend and
+/// drawn in no class's colour.
+pub const NO_CLASS: u8 = u8::MAX;
+
+/// A class plane's value, as `confidence.exr` stores it (a float), as its class number: the
+/// whole part of a value in `[0, 255)`, else [`NO_CLASS`].
+pub fn class_of(value: f32) -> u8 {
+    if value >= 0.0 && value < f32::from(NO_CLASS) {
+        value as u8
+    } else {
+        NO_CLASS
+    }
+}
 
 /// The albedo the page shows: linear display primaries clamped to [0, 1], black where
 /// unsolved, as `albedo.png` holds it.
@@ -170,14 +202,24 @@ fn read_normal(dir: &Path, convention: NormalConvention) -> Result<[Plane; 3]> {
     Ok([x, y, z])
 }
 
-fn read_confidence(dir: &Path) -> Result<[Plane; 4]> {
+fn read_confidence(dir: &Path) -> Result<Confidence<'static>> {
     let path = dir.join("confidence.exr");
     if !path.exists() {
         return Err(Error::image(path, "missing"));
     }
-    read_exr(&path, &["status", "fit", "predicted_error_deg", "residual"])?
-        .try_into()
-        .map_err(|_| Error::image(&path, "expected four channels"))
+    let [status, fit, predicted_error_deg, residual]: [Plane; 4] =
+        read_exr(&path, &["status", "fit", "predicted_error_deg", "residual"])?
+            .try_into()
+            .map_err(|_| Error::image(&path, "expected four channels"))?;
+    let classes = |plane: Plane| Cow::Owned(plane.data.par_iter().map(|&v| class_of(v)).collect());
+    Ok(Confidence {
+        width: status.width,
+        height: status.height,
+        status: classes(status),
+        fit: classes(fit),
+        predicted_error_deg: Cow::Owned(predicted_error_deg),
+        residual: Cow::Owned(residual),
+    })
 }
 
 fn keep<T>(read: Result<T>, missing: &mut Vec<String>) -> Option<T> {
@@ -195,15 +237,15 @@ impl<'a> FullMaps<'a> {
         );
         let albedo = keep(albedo, &mut missing);
         let normal = keep(normal, &mut missing).map(|n| n.map(Cow::Owned));
-        let confidence = keep(confidence, &mut missing).map(|c| c.map(Cow::Owned));
+        let confidence = keep(confidence, &mut missing);
         let sizes: Vec<(usize, usize)> = [
             albedo.as_ref().map(|p| &p[0]),
             normal.as_ref().map(|p| &*p[0]),
         ]
         .into_iter()
         .flatten()
-        .chain(confidence.as_ref().map(|c| &*c[0]))
         .map(|p| (p.width, p.height))
+        .chain(confidence.as_ref().map(|c| (c.width, c.height)))
         .collect();
         let (width, height) = sizes.first().copied().unwrap_or((0, 0));
         let mut maps = FullMaps {
@@ -229,8 +271,8 @@ impl<'a> FullMaps<'a> {
     /// `albedo.png` holds it, black where unsolved; the normals in the OpenGL convention; the
     /// confidence planes as `confidence.exr` holds them), without the PNGs' 16-bit rounding
     /// and without reading and decoding half a gigabyte of files at 16 MP. The normals and the
-    /// confidence map's float planes are the solve's own, borrowed: copies were 320 MB at
-    /// 16 MP, all of it fresh memory.
+    /// confidence planes are the solve's own, borrowed: copies were 320 MB at 16 MP, all of it
+    /// fresh memory.
     pub fn from_result(
         result: &'a SolveResult,
         display_matrix: Option<&[[f64; 3]; 3]>,
@@ -241,18 +283,15 @@ impl<'a> FullMaps<'a> {
             result,
             display_matrix: display_matrix.copied(),
         };
-        let to_plane = |values: Vec<f32>| Plane::from_vec(w, h, values).expect("sized");
-        let (status, fit) = rayon::join(
-            || to_plane(result.status.par_iter().map(|&s| s as u8 as f32).collect()),
-            || to_plane(result.fit.par_iter().map(|&f| f as u8 as f32).collect()),
-        );
         let normal = result.normal.each_ref().map(Cow::Borrowed);
-        let confidence = [
-            Cow::Owned(status),
-            Cow::Owned(fit),
-            Cow::Borrowed(&result.predicted_error_deg),
-            Cow::Borrowed(&result.residual),
-        ];
+        let confidence = Confidence {
+            width: w,
+            height: h,
+            status: Cow::Borrowed(bytemuck::cast_slice(&result.status)),
+            fit: Cow::Borrowed(bytemuck::cast_slice(&result.fit)),
+            predicted_error_deg: Cow::Borrowed(&result.predicted_error_deg),
+            residual: Cow::Borrowed(&result.residual),
+        };
         FullMaps {
             width: w,
             height: h,
@@ -263,16 +302,28 @@ impl<'a> FullMaps<'a> {
         }
     }
 
-    /// Maps of only a confidence map (`status`, `fit`, `predicted_error_deg`, `residual`), for
-    /// the tests of what the page computes from it.
+    /// Maps of only a confidence map (class numbers `status` and `fit`, and the float planes),
+    /// for the tests of what the page computes from it.
     #[cfg(test)]
-    pub(super) fn of_confidence(planes: [Plane; 4]) -> FullMaps<'static> {
+    pub(super) fn of_confidence(
+        status: Vec<u8>,
+        fit: Vec<u8>,
+        [predicted_error_deg, residual]: [Plane; 2],
+    ) -> FullMaps<'static> {
+        let confidence = Confidence {
+            width: residual.width,
+            height: residual.height,
+            status: Cow::Owned(status),
+            fit: Cow::Owned(fit),
+            predicted_error_deg: Cow::Owned(predicted_error_deg),
+            residual: Cow::Owned(residual),
+        };
         FullMaps {
-            width: planes[0].width,
-            height: planes[0].height,
+            width: confidence.width,
+            height: confidence.height,
             albedo: None,
             normal: None,
-            confidence: Some(planes.map(Cow::Owned)),
+            confidence: Some(confidence),
             missing: Vec::new(),
         }
     }
@@ -283,15 +334,19 @@ impl<'a> FullMaps<'a> {
         if self.normal.as_ref().is_some_and(|n| !same(&n[0])) {
             self.normal = None;
         }
-        if self.confidence.as_ref().is_some_and(|c| !same(&c[0])) {
+        if self
+            .confidence
+            .as_ref()
+            .is_some_and(|c| (c.width, c.height) != size)
+        {
             self.confidence = None;
         }
     }
 
-    /// The status plane's values (a `PixelStatus` as a number, [`SOLVED`] where solved);
-    /// `None` where the confidence map is missing.
-    pub fn status(&self) -> Option<&[f32]> {
-        self.confidence.as_ref().map(|c| &c[0].data[..])
+    /// The status plane (a `PixelStatus` as a number, [`SOLVED`] where solved); `None` where
+    /// the confidence map is missing.
+    pub fn status(&self) -> Option<&[u8]> {
+        self.confidence.as_ref().map(|c| &c.status[..])
     }
 
     /// Whether pixel `i` holds a solved normal (status [`SOLVED`]; every pixel when the
@@ -380,12 +435,12 @@ pub(super) fn byte(v: f32) -> u8 {
     crate::math::round_non_negative(v.clamp(0.0, 1.0) * 255.0) as i32 as u8
 }
 
-/// A class map at display size: each block takes its most common class, `class_at(i)` (below
-/// 256) being pixel i's of the `w x h` full-resolution map (read through a function, so that a
+/// A class map at display size: each block takes its most common class, `class_at(i)` being
+/// pixel i's of the `w x h` full-resolution map (read through a function, so that a
 /// caller masking some pixels copies no 16 MP plane to do it).
 pub fn class_image(
     (w, h): (usize, usize),
-    class_at: impl Fn(usize) -> usize + Sync,
+    class_at: impl Fn(usize) -> u8 + Sync,
     r: &Reduction,
     colour: impl Fn(u8) -> [u8; 3] + Sync,
 ) -> RgbImage {
@@ -408,7 +463,7 @@ pub fn class_image(
                 *block = (x * f * f, 0);
             }
             r.sum_row((w, h), y, blocks, |(start, len), i| {
-                classes[*start + *len] = u8::try_from(class_at(i)).expect("a class below 256");
+                classes[*start + *len] = class_at(i);
                 *len += 1;
             });
             for (px, &(start, len)) in row.chunks_exact_mut(3).zip(blocks.iter()) {
@@ -435,11 +490,6 @@ pub fn class_image(
             }
         },
     )
-}
-
-/// The class a class map's value stands for (0 to 255; NaN is 0).
-pub fn class_of(value: f32) -> usize {
-    value.clamp(0.0, 255.0) as usize
 }
 
 /// Viridis, sampled at nine points (matplotlib's table), linearly interpolated.
@@ -657,16 +707,12 @@ mod tests {
         let value = |i: usize| ((i * 7919) % 97) as f32 * 10f32.powi((i % 9) as i32 - 4);
         let plane = Plane::from_vec(w, h, (0..w * h).map(value).collect()).unwrap();
         // Pixels with status 1 are unsolved: left out of the means.
-        let status = Plane::from_vec(
-            w,
-            h,
-            (0..w * h).map(|i| (i % 5 == 0) as u8 as f32).collect(),
-        )
-        .unwrap();
-        let maps = FullMaps::of_confidence([status.clone(), status, plane.clone(), plane.clone()]);
+        let status: Vec<u8> = (0..w * h).map(|i| (i % 5 == 0) as u8).collect();
+        let maps = FullMaps::of_confidence(status.clone(), status, [plane.clone(), plane.clone()]);
         let max = 50.0;
         let scalar = scalar_image(&plane, &maps, &r, max);
-        let classes = class_image((w, h), |i| (plane.data[i] as usize) % 4, &r, |c| [c, 0, 0]);
+        let class = |i: usize| ((plane.data[i] as usize) % 4) as u8;
+        let classes = class_image((w, h), class, &r, |c| [c, 0, 0]);
         for y in 0..r.height {
             for x in 0..r.width {
                 let pixels = block_pixels(&r, (w, h), (x, y));

@@ -243,10 +243,10 @@ fn class_parts(maps: &FullMaps, r: &Reduction) -> String {
         );
     };
     let mut out = String::new();
-    let size = (conf[0].width, conf[0].height);
+    let size = (conf.width, conf.height);
     let status = images::class_image(
         size,
-        |i| images::class_of(conf[0].data[i]),
+        |i| conf.status[i],
         r,
         |c| STATUS_CLASSES.get(c as usize).map_or([0, 0, 0], |s| s.1),
     );
@@ -258,14 +258,14 @@ fn class_parts(maps: &FullMaps, r: &Reduction) -> String {
             &images::png_bytes(&status),
             "per-pixel status",
         ),
-        &legend_classes(&STATUS_CLASSES, &class_counts(&conf[0], maps, false, 6)),
+        &legend_classes(&STATUS_CLASSES, &class_counts(&conf.status, maps, false, 6)),
     );
-    // Unsolved pixels count as class 255, which has no colour of its own: black.
+    // Unsolved pixels count as no class, which has no colour of its own: black.
     let fit_or_none = |i| {
         if maps.solved(i) {
-            images::class_of(conf[1].data[i])
+            conf.fit[i]
         } else {
-            255
+            images::NO_CLASS
         }
     };
     let fit_img = images::class_image(size, fit_or_none, r, |c| {
@@ -279,16 +279,21 @@ fn class_parts(maps: &FullMaps, r: &Reduction) -> String {
             &images::png_bytes(&fit_img),
             "which fit each pixel got",
         ),
-        &(legend_classes(&FIT_CLASSES, &class_counts(&conf[1], maps, true, 3))
+        &(legend_classes(&FIT_CLASSES, &class_counts(&conf.fit, maps, true, 3))
             + "<p class=\"note\">black: not solved</p>"),
     );
     let legend = images::png_bytes(&images::viridis_legend());
-    for (k, id, title, unit) in [
-        (2, "img-predicted", "predicted normal error", "deg"),
-        (3, "img-residual", "residual", "(relative)"),
+    for (plane, id, title, unit) in [
+        (
+            &conf.predicted_error_deg,
+            "img-predicted",
+            "predicted normal error",
+            "deg",
+        ),
+        (&conf.residual, "img-residual", "residual", "(relative)"),
     ] {
-        let max = images::scale_max(&conf[k], maps);
-        let img = images::scalar_image(&conf[k], maps, r, max);
+        let max = images::scale_max(plane, maps);
+        let img = images::scalar_image(plane, maps, r, max);
         let scale = format!(
             "<div class=\"scale\"><span>0</span>{}<span>{} {unit}</span></div>\
              <p class=\"note\">block means over solved pixels; the scale ends at the 99th \

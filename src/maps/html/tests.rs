@@ -83,34 +83,71 @@ fn maps_from_memory_equal_the_maps_read_back_from_the_files() {
         })
         .fold(0f32, f32::max);
     assert!(albedo <= 2.5 * 0.5 / 65535.0 + 1e-6, "albedo {albedo}");
-    let confidence = max_diff(
-        memory.confidence.as_ref().unwrap(),
-        read.confidence.as_ref().unwrap(),
+    let (memory, read) = (memory.confidence.unwrap(), read.confidence.unwrap());
+    assert_eq!((memory.width, memory.height), (read.width, read.height));
+    // The classes the solve holds are the numbers the file holds; the float planes, to the bit.
+    assert_eq!(memory.status, read.status);
+    assert_eq!(memory.fit, read.fit);
+    assert!(
+        memory.fit.iter().any(|&f| f != 0),
+        "the robust fit ran somewhere"
     );
-    assert_eq!(confidence, 0.0);
+    let floats = max_diff(
+        &[memory.predicted_error_deg, memory.residual],
+        &[read.predicted_error_deg, read.residual],
+    );
+    assert_eq!(floats, 0.0);
 }
 
-/// The legend's class counts, counted in parallel blocks, equal a plain count: only whole
-/// classes below `n` of non-negative values, the solved pixels only where asked, over more
-/// than one block.
+/// A class plane's float value from `confidence.exr` becomes its class number: the whole part
+/// of a value in [0, 255), and no class for NaN, negative values and values past a byte's
+/// last class (which then count in no legend and take no class's colour).
+#[test]
+fn class_numbers_of_a_files_floats() {
+    use images::{class_of, NO_CLASS};
+    for (value, class) in [
+        (0.0, 0),
+        (-0.0, 0),
+        (1.0, 1),
+        (5.5, 5),
+        (254.9, 254),
+        (255.0, NO_CLASS),
+        (300.0, NO_CLASS),
+        (-1.0, NO_CLASS),
+        (f32::NAN, NO_CLASS),
+        (f32::INFINITY, NO_CLASS),
+        (f32::NEG_INFINITY, NO_CLASS),
+    ] {
+        assert_eq!(class_of(value), class, "{value}");
+    }
+}
+
+/// The legend's class counts, counted in parallel blocks, equal a plain count of the file's
+/// float values: only whole classes below `n` of non-negative values, the solved pixels only
+/// where asked, over more than one block.
 #[test]
 fn class_counts_count_each_class_below_n_of_the_pixels_asked_for() {
     use crate::plane::Plane;
     let (w, h) = (1000, 150);
     let odd = [f32::NAN, -1.0, 5.5, 300.0, 2.0, 0.0, 1.0, 7.0];
-    let status = Plane::from_vec(w, h, (0..w * h).map(|i| ((i / 7) % 3) as f32).collect());
-    let fit = Plane::from_vec(w, h, (0..w * h).map(|i| odd[i % odd.len()]).collect());
-    let (status, fit) = (status.unwrap(), fit.unwrap());
-    let maps =
-        images::FullMaps::of_confidence([status.clone(), fit.clone(), fit.clone(), fit.clone()]);
-    for (plane, solved_only, n) in [(&status, false, 6), (&fit, true, 3), (&fit, false, 6)] {
+    let status: Vec<f32> = (0..w * h).map(|i| ((i / 7) % 3) as f32).collect();
+    let fit: Vec<f32> = (0..w * h).map(|i| odd[i % odd.len()]).collect();
+    let numbers = |values: &[f32]| values.iter().map(|&v| images::class_of(v)).collect();
+    let zeros = || Plane::new(w, h, 0.0);
+    let maps = images::FullMaps::of_confidence(numbers(&status), numbers(&fit), [zeros(), zeros()]);
+    let conf = maps.confidence.as_ref().unwrap();
+    for (values, classes, solved_only, n) in [
+        (&status, &conf.status, false, 6),
+        (&fit, &conf.fit, true, 3),
+        (&fit, &conf.fit, false, 6),
+    ] {
         let mut expected = vec![0usize; n];
-        for (i, &v) in plane.data.iter().enumerate() {
-            if (!solved_only || status.data[i] == 0.0) && v >= 0.0 && (v as usize) < n {
+        for (i, &v) in values.iter().enumerate() {
+            if (!solved_only || status[i] == 0.0) && v >= 0.0 && (v as usize) < n {
                 expected[v as usize] += 1;
             }
         }
         assert!(expected[..3].iter().all(|&c| c > 0), "the classes occur");
-        assert_eq!(class_counts(plane, &maps, solved_only, n), expected);
+        assert_eq!(class_counts(classes, &maps, solved_only, n), expected);
     }
 }
