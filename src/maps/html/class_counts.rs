@@ -1,6 +1,6 @@
 //! The page's class legends count: how many pixels hold each status or fit class.
 
-use super::images::{FullMaps, SOLVED};
+use super::full_maps::{FullMaps, SOLVED};
 
 /// How many pixels of `classes` (a class plane's numbers) hold each class below `n` (the
 /// solved ones only, with `solved_only`), counted on every core in blocks of plain loops over slices (a fold over 16 M

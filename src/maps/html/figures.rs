@@ -2,7 +2,8 @@
 
 use std::path::{Path, PathBuf};
 
-use super::images::{FullMaps, Reduction};
+use super::full_maps::FullMaps;
+use super::images::Reduction;
 use super::relight::RelightTextures;
 use super::{class_parts, derived, map_parts, textures};
 use crate::solve::SolveResult;

@@ -6,7 +6,8 @@ use image::RgbImage;
 use jpeg_encoder::SamplingFactor;
 use rayon::prelude::*;
 
-use super::images::{self, byte, AlbedoMap, FullMaps, HuffmanTables};
+use super::full_maps::{AlbedoMap, FullMaps};
+use super::images::{self, byte, HuffmanTables};
 use crate::plane::Plane;
 
 /// JPEG qualities the loupe tries at each sampling, best first. The floor keeps block

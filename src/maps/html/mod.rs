@@ -13,6 +13,7 @@ mod class_counts;
 pub mod derived;
 mod figures;
 pub mod frames;
+pub mod full_maps;
 pub mod images;
 mod loupe;
 pub mod relight;
@@ -35,7 +36,8 @@ use crate::error::{Error, Result};
 use crate::fsutil::write_atomic;
 use crate::maps::encode::NormalConvention;
 use crate::maps::REPORT_FILE;
-use images::{FullMaps, Reduction};
+use full_maps::FullMaps;
+use images::Reduction;
 use loupe::loupe_parts;
 use relight::{RelightParams, RelightTextures};
 
@@ -265,7 +267,7 @@ fn class_parts(maps: &FullMaps, r: &Reduction) -> String {
         if maps.solved(i) {
             conf.fit[i]
         } else {
-            images::NO_CLASS
+            full_maps::NO_CLASS
         }
     };
     let fit_img = images::class_image(size, fit_or_none, r, |c| {

@@ -104,7 +104,7 @@ fn maps_from_memory_equal_the_maps_read_back_from_the_files() {
 /// last class (which then count in no legend and take no class's colour).
 #[test]
 fn class_numbers_of_a_files_floats() {
-    use images::{class_of, NO_CLASS};
+    use full_maps::{class_of, NO_CLASS};
     for (value, class) in [
         (0.0, 0),
         (-0.0, 0),
@@ -132,9 +132,10 @@ fn class_counts_count_each_class_below_n_of_the_pixels_asked_for() {
     let odd = [f32::NAN, -1.0, 5.5, 300.0, 2.0, 0.0, 1.0, 7.0];
     let status: Vec<f32> = (0..w * h).map(|i| ((i / 7) % 3) as f32).collect();
     let fit: Vec<f32> = (0..w * h).map(|i| odd[i % odd.len()]).collect();
-    let numbers = |values: &[f32]| values.iter().map(|&v| images::class_of(v)).collect();
+    let numbers = |values: &[f32]| values.iter().map(|&v| full_maps::class_of(v)).collect();
     let zeros = || Plane::new(w, h, 0.0);
-    let maps = images::FullMaps::of_confidence(numbers(&status), numbers(&fit), [zeros(), zeros()]);
+    let maps =
+        full_maps::FullMaps::of_confidence(numbers(&status), numbers(&fit), [zeros(), zeros()]);
     let conf = maps.confidence.as_ref().unwrap();
     for (values, classes, solved_only, n) in [
         (&status, &conf.status, false, 6),

@@ -4,7 +4,8 @@
 use image::RgbImage;
 use rayon::prelude::*;
 
-use super::images::{byte, AlbedoMap, FullMaps, Reduction, SOLVED};
+use super::full_maps::{AlbedoMap, FullMaps, SOLVED};
+use super::images::{byte, Reduction};
 use super::relight::{linear_to_srgb8, RelightTextures};
 
 /// One display row's full-resolution pixels (the `factor` rows of its blocks, one run of

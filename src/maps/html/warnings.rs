@@ -4,7 +4,7 @@
 use serde_json::Value;
 
 use super::escape;
-use super::images::FullMaps;
+use super::full_maps::FullMaps;
 
 /// One warning.
 pub struct Warning {
