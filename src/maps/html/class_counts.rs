@@ -3,10 +3,10 @@
 use super::full_maps::{FullMaps, SOLVED};
 
 /// How many pixels of `classes` (a class plane's numbers) hold each class below `n` (the
-/// solved ones only, with `solved_only`), counted on every core in blocks of plain loops over slices (a fold over 16 M
-/// indexed values, moving its count vector through every step, took a seventh of the page's
-/// time). Four counts per class, taken in turn: one count bumped by every pixel waits on its
-/// own last store, and nearly every pixel is in the same class.
+/// solved ones only, with `solved_only`), counted on every core in blocks of plain loops over
+/// slices (a fold over 16 M indexed values, moving its count vector through every step, took a
+/// seventh of the page's time). Four counts per class, taken in turn: one count bumped by every
+/// pixel waits on its own last store, and nearly every pixel is in the same class.
 pub(super) fn class_counts(
     classes: &[u8],
     maps: &FullMaps,

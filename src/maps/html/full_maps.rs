@@ -14,7 +14,7 @@ use crate::maps::srgb::srgb_to_linear;
 use crate::plane::Plane;
 use crate::solve::SolveResult;
 
-/// A full-resolution map read back from the solve folder.
+/// The full-resolution maps of a solve, read back from its folder or borrowed from memory.
 pub struct FullMaps<'a> {
     /// Width of the full-resolution maps in pixels.
     pub width: usize,
