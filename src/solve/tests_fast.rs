@@ -476,7 +476,7 @@ fn the_default_screen_sends_few_clean_pixels_to_the_exact_kernel() {
 /// frame's own illuminant colour; with `kept_as_dn`, each sample kept as DN (per-site black
 /// levels, white 15600) over a shared dark frame, as `raw::pass::keep_dn` keeps a DNG's.
 /// Returns the stack and the same values as three planes.
-fn as_cfa_stack(frames: &Frames, kept_as_dn: bool) -> (Frames, Frames) {
+pub(super) fn as_cfa_stack(frames: &Frames, kept_as_dn: bool) -> (Frames, Frames) {
     use crate::plane::{CfaColour, DnMosaic, LightFrame, RgbPlanes};
     let (w, h) = (frames.width, frames.height);
     let pattern = [[0u8, 1], [1, 2]];
