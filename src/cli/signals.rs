@@ -173,15 +173,14 @@ fn stop_message(
             None => out += &format!("  removed unfinished {}\n", path.display()),
         }
     }
+    let (others, unless_named) = if committed.is_empty() {
+        ("", "")
+    } else {
+        ("else ", " unless named above")
+    };
     out += &format!(
-        "  kept: everything {}that was there before the run (an earlier output under the same \
-         name is untouched{}){}\n",
-        if committed.is_empty() { "" } else { "else " },
-        if committed.is_empty() {
-            ""
-        } else {
-            " unless named above"
-        },
+        "  kept: everything {others}that was there before the run (an earlier output under the \
+         same name is untouched{unless_named}){}\n",
         if cooperative {
             "; every frame or step already saved"
         } else {

@@ -193,20 +193,18 @@ enum Shared<'a> {
 }
 
 impl Shared<'_> {
-    /// The `Arc`'s address, which identifies it among the frames.
-    fn address(&self) -> usize {
-        match self {
-            Shared::Ratios(a) => Arc::as_ptr(a) as usize,
-            Shared::DarkSamples(a) => Arc::as_ptr(a) as usize,
-            Shared::Dark(a) => Arc::as_ptr(a) as usize,
+    /// The `Arc`'s address, which identifies it among the frames, and its strong count.
+    fn identity(&self) -> (usize, usize) {
+        fn of<T>(arc: &Arc<T>) -> (usize, usize) {
+            (
+                Arc::as_ptr(arc) as *const () as usize,
+                Arc::strong_count(arc),
+            )
         }
-    }
-
-    fn strong_count(&self) -> usize {
         match self {
-            Shared::Ratios(a) => Arc::strong_count(a),
-            Shared::DarkSamples(a) => Arc::strong_count(a),
-            Shared::Dark(a) => Arc::strong_count(a),
+            Shared::Ratios(a) => of(a),
+            Shared::DarkSamples(a) => of(a),
+            Shared::Dark(a) => of(a),
         }
     }
 
@@ -261,13 +259,13 @@ fn shared_buffers(frames: &Frames, each: &mut dyn FnMut(*const u8, usize, usize)
     let shared: Vec<Shared> = frames.lights.iter().flat_map(shared_planes).collect();
     let mut done = Vec::new();
     for plane in &shared {
-        let address = plane.address();
+        let (address, strong_count) = plane.identity();
         if done.contains(&address) {
             continue;
         }
         done.push(address);
-        let holds = shared.iter().filter(|p| p.address() == address).count();
-        if holds == plane.strong_count() {
+        let holds = shared.iter().filter(|p| p.identity().0 == address).count();
+        if holds == strong_count {
             plane.buffers(each);
         }
     }
