@@ -7,6 +7,12 @@ runs, round after round so that every configuration sees the same machine load:
   dng full    `psscan solve DNG` with the defaults
   dng half    `psscan solve DNG --resolution half` (the operator's preview)
   dn16 full   `psscan solve DN16`
+  dng cloth   `psscan solve CLOTH` with the defaults: the same scene rendered as a DNG set with
+              the relief's cast shadows and the cloth sheen lobe (`synth --shadows --sheen`),
+              which a real textile shows and the Lambertian model does not explain. There the
+              model test fails at about a quarter of the pixels and the robust fit solves them:
+              the plain sets' solve (a few hundredths of a percent escalated) does not measure
+              that path at all. Not one of issue 18's targets; printed with its share escalated
   peer        `peer_rawpy.py DNG` (half resolution, one normal PNG), when the Python given by
               --python imports rawpy and numpy; skipped with a note otherwise
 Each configuration's figure is the median whole-process wall time over the rounds; its stage
@@ -23,7 +29,8 @@ asks for a peak of at most 1.5x that.
 
 Usage: bench_e2e.py [--psscan BIN] [--python PY] [--width W --height H] [--rounds N]
                     [--work DIR] [--keep] [--json] [--dng SET] [--dn16 SET]
-(--dng and --dn16 time sets rendered before, of the same scene, instead of rendering them.)
+(--dng, --dn16 and --cloth time sets rendered before, of the same scene, instead of rendering
+them; --no-cloth leaves the cloth set out, whose 16 MP render takes minutes.)
 Needs only the Python standard library; the peer needs rawpy and numpy in --python. Not part
 of `make test` (it takes minutes and needs a few GiB of disk): `make bench-e2e` runs it.
 """
@@ -78,9 +85,9 @@ def peer_available(python):
     return probe.returncode == 0
 
 
-def synth(psscan, out, encoding, width, height):
+def synth(psscan, out, encoding, width, height, extra=()):
     wall, _, _ = run([psscan, "--quiet", "synth", "--out", out, "--width", str(width),
-                   "--height", str(height), "--encoding", encoding, "--force"])
+                   "--height", str(height), "--encoding", encoding, "--force", *extra])
     return wall
 
 
@@ -89,8 +96,11 @@ def solve(psscan, set_dir, out, extra):
     wall, stdout, peak = run([psscan, "--quiet", "solve", set_dir, "--out", out, "--json"]
                              + extra)
     report = json.loads(stdout)
+    solved = report.get("pixels", {}).get("solved")
+    escalated = report.get("escalated")
     return {"wall_s": wall, "stages": report.get("stages", []),
-            "total_s": report.get("timings_s", {}).get("total"), "peak_rss_bytes": peak}
+            "total_s": report.get("timings_s", {}).get("total"), "peak_rss_bytes": peak,
+            "escalated_share": escalated / solved if solved and escalated is not None else None}
 
 
 def peer(python, set_dir, out_png):
@@ -139,7 +149,11 @@ def table(results):
 
 # The stage that decodes a configuration's frames: the floor the issue names ("decoding the
 # frames alone"), which the rest of the command is measured against.
-DECODE_STAGES = {"dng full": "decode", "dng half": "decode", "dn16 full": "decode + linearize"}
+DECODE_STAGES = {"dng full": "decode", "dng half": "decode", "dn16 full": "decode + linearize",
+                 "dng cloth": "decode"}
+
+# The configurations issue 18's targets name.
+TARGET_CONFIGS = ("dng full", "dng half", "dn16 full")
 
 
 # Issue 18's memory target: peak resident set over the decoded frames.
@@ -167,7 +181,7 @@ def targets(results):
         {"target": f"{name} peak memory at most {MEMORY_TARGET}x the decoded frames",
          "figure": memory_ratio(results[name]), "unit": "x",
          "met": memory_ratio(results[name]) <= MEMORY_TARGET}
-        for name in DECODE_STAGES
+        for name in TARGET_CONFIGS
     ]
 
 
@@ -175,11 +189,16 @@ def floor_lines(results):
     """Each psscan configuration's wall time against its decode stage (`decode_s`)."""
     lines = []
     for name, stage in DECODE_STAGES.items():
-        decode = results[name].get("decode_s")
+        decode = results.get(name, {}).get("decode_s")
         if decode:
             wall = results[name]["wall_s"]
-            lines.append(f"{name}: {wall:.2f} s wall, {wall / decode:.2f}x its '{stage}' "
-                         f"stage ({decode:.2f} s)")
+            line = (f"{name}: {wall:.2f} s wall, {wall / decode:.2f}x its '{stage}' "
+                    f"stage ({decode:.2f} s)")
+            share = results[name].get("escalated_share")
+            if share is not None:
+                solve_s = stage_seconds(results[name], "solve")
+                line += f"; solve stage {solve_s:.2f} s, {100 * share:.2f} % of pixels escalated"
+            lines.append(line)
     return lines
 
 
@@ -210,6 +229,8 @@ def main():
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
     parser.add_argument("--dng", help="an existing DNG set to time instead of rendering one")
     parser.add_argument("--dn16", help="an existing dn16 set to time instead of rendering one")
+    parser.add_argument("--cloth", help="an existing DNG set with shadows and sheen to time")
+    parser.add_argument("--no-cloth", action="store_true", help="leave the cloth set out")
     args = parser.parse_args()
     if not os.access(args.psscan, os.X_OK):
         sys.exit(f"bench_e2e: {args.psscan} not found: build it first (cargo build --release)")
@@ -219,16 +240,22 @@ def main():
     try:
         dng = args.dng or os.path.join(work, "dng")
         dn16 = args.dn16 or os.path.join(work, "dn16")
-        for path, encoding, given in [(dng, "dng", args.dng), (dn16, "dn16", args.dn16)]:
+        cloth = None if args.no_cloth else args.cloth or os.path.join(work, "cloth")
+        sets = [(dng, "dng", args.dng, ()), (dn16, "dn16", args.dn16, ())]
+        if cloth:
+            sets.append((cloth, "dng", args.cloth, ("--shadows", "--sheen")))
+        for path, encoding, given, extra in sets:
             if not given:
-                print(f"rendering the {args.width}x{args.height} {encoding} set in {work} ...",
-                      file=log)
-                synth(args.psscan, path, encoding, args.width, args.height)
+                print(f"rendering the {args.width}x{args.height} {encoding} set "
+                      f"{' '.join(extra)} in {work} ...", file=log)
+                synth(args.psscan, path, encoding, args.width, args.height, extra)
         configs = {
             "dng full": lambda o: solve(args.psscan, dng, o, []),
             "dng half": lambda o: solve(args.psscan, dng, o, ["--resolution", "half"]),
             "dn16 full": lambda o: solve(args.psscan, dn16, o, []),
         }
+        if cloth:
+            configs["dng cloth"] = lambda o: solve(args.psscan, cloth, o, [])
         note = None
         if peer_available(args.python):
             configs["peer (half)"] = lambda o: peer(args.python, dng, o + ".png")
@@ -244,10 +271,11 @@ def main():
                 print(f"round {k + 1}/{args.rounds} {name}: {runs[name][-1]['wall_s']:.2f} s",
                       file=log)
         results = {name: median_run(r) for name, r in runs.items()}
+        set_dirs = {"dng full": dng, "dng half": dng, "dn16 full": dn16, "dng cloth": cloth}
         for name, stage in DECODE_STAGES.items():
-            results[name]["decode_s"] = stage_seconds(results[name], stage)
-        for name, set_dir in [("dng full", dng), ("dng half", dng), ("dn16 full", dn16)]:
-            results[name]["decoded_frame_bytes"] = decoded_frame_bytes(set_dir)
+            if name in results:
+                results[name]["decode_s"] = stage_seconds(results[name], stage)
+                results[name]["decoded_frame_bytes"] = decoded_frame_bytes(set_dirs[name])
         if args.json:
             print(json.dumps({"width": args.width, "height": args.height,
                               "rounds": args.rounds, "note": note, "results": results,
