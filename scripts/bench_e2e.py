@@ -251,13 +251,16 @@ def main():
                 print(f"rendering the {args.width}x{args.height} {what} set in {work} ...",
                       file=log)
                 synth(args.psscan, path, encoding, args.width, args.height, extra)
-        configs = {
-            "dng full": lambda o: solve(args.psscan, dng, o, []),
-            "dng half": lambda o: solve(args.psscan, dng, o, ["--resolution", "half"]),
-            "dn16 full": lambda o: solve(args.psscan, dn16, o, []),
+        # Each psscan configuration's set and options.
+        psscan_configs = {
+            "dng full": (dng, []),
+            "dng half": (dng, ["--resolution", "half"]),
+            "dn16 full": (dn16, []),
         }
         if cloth:
-            configs["dng cloth"] = lambda o: solve(args.psscan, cloth, o, [])
+            psscan_configs["dng cloth"] = (cloth, [])
+        configs = {name: (lambda o, s=set_dir, e=extra: solve(args.psscan, s, o, e))
+                   for name, (set_dir, extra) in psscan_configs.items()}
         note = None
         if peer_available(args.python):
             configs["peer (half)"] = lambda o: peer(args.python, dng, o + ".png")
@@ -273,11 +276,9 @@ def main():
                 print(f"round {k + 1}/{args.rounds} {name}: {runs[name][-1]['wall_s']:.2f} s",
                       file=log)
         results = {name: median_run(r) for name, r in runs.items()}
-        set_dirs = {"dng full": dng, "dng half": dng, "dn16 full": dn16, "dng cloth": cloth}
-        for name, stage in DECODE_STAGES.items():
-            if name in results:
-                results[name]["decode_s"] = stage_seconds(results[name], stage)
-                results[name]["decoded_frame_bytes"] = decoded_frame_bytes(set_dirs[name])
+        for name, (set_dir, _) in psscan_configs.items():
+            results[name]["decode_s"] = stage_seconds(results[name], DECODE_STAGES[name])
+            results[name]["decoded_frame_bytes"] = decoded_frame_bytes(set_dir)
         if args.json:
             print(json.dumps({"width": args.width, "height": args.height,
                               "rounds": args.rounds, "note": note, "results": results,

@@ -257,14 +257,13 @@ fn shared_planes(frame: &LightFrame) -> Vec<Shared<'_>> {
 /// their owner may then give back. A plane held elsewhere too is left whole.
 fn shared_buffers(frames: &Frames, each: &mut dyn FnMut(*const u8, usize, usize)) {
     let shared: Vec<Shared> = frames.lights.iter().flat_map(shared_planes).collect();
-    let mut done = Vec::new();
-    for plane in &shared {
-        let (address, strong_count) = plane.identity();
-        if done.contains(&address) {
+    let identities: Vec<(usize, usize)> = shared.iter().map(Shared::identity).collect();
+    for (k, (plane, &(address, strong_count))) in shared.iter().zip(&identities).enumerate() {
+        // Each plane once, at the first of its holds.
+        if identities[..k].iter().any(|&(a, _)| a == address) {
             continue;
         }
-        done.push(address);
-        let holds = shared.iter().filter(|p| p.identity().0 == address).count();
+        let holds = identities.iter().filter(|&&(a, _)| a == address).count();
         if holds == strong_count {
             plane.buffers(each);
         }
