@@ -3,8 +3,7 @@
 
 use std::path::Path;
 
-use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{DynamicImage, ImageBuffer, Rgb};
+use image::DynamicImage;
 
 use crate::error::{Error, Result};
 use crate::plane::{DnSamples, LightFrame, Mask};
@@ -258,18 +257,11 @@ pub fn decode_dn_image(bytes: &[u8], path: &Path) -> Result<DnImage> {
     })
 }
 
-/// Encodes a DN image as a 16-bit RGB PNG with fast compression (noisy raw data barely
-/// compresses; speed matters more).
+/// Encodes a DN image as a 16-bit RGB PNG: the fast deflate where it saves enough, else
+/// stored (noisy raw data barely compresses, and every solve of the set reads the frame: see
+/// [`crate::io::encode_frame_png16`]).
 pub fn encode_png16(image: &DnImage) -> Result<Vec<u8>> {
-    let buffer: ImageBuffer<Rgb<u16>, Vec<u16>> =
-        ImageBuffer::from_raw(image.width as u32, image.height as u32, image.data.clone())
-            .ok_or_else(|| Error::Invalid("DN image size does not match its data".into()))?;
-    let mut bytes = Vec::new();
-    let encoder = PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, FilterType::Sub);
-    DynamicImage::ImageRgb16(buffer)
-        .write_with_encoder(encoder)
-        .map_err(|e| Error::Invalid(format!("PNG encoding failed: {e}")))?;
-    Ok(bytes)
+    crate::io::encode_frame_png16(image.width, image.height, &image.data)
 }
 
 #[cfg(test)]
