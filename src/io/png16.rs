@@ -99,7 +99,7 @@ pub fn encode_png16_rows_into(
 
 /// A capture frame of raw digital numbers (interleaved 16-bit RGB, `width * height * 3`
 /// samples) as 16-bit RGB PNG file bytes: the fast deflate where it saves at least
-/// [`MIN_FRAME_SAVING`] of the stored size, else stored as it is.
+/// 30 % of the stored size (`MIN_FRAME_SAVING`), else stored as it is.
 pub fn encode_frame_png16(width: usize, height: usize, rgb: &[u16]) -> Result<Vec<u8>> {
     if rgb.len() != width * height * 3 {
         return Err(PsError::Invalid(
