@@ -29,6 +29,13 @@ impl PngCompression {
             PngCompression::Best => png::Compression::High,
         }
     }
+
+    /// The share the deflate must save for a map to be compressed rather than stored: the
+    /// fast deflate, streamed, makes incompressible data larger than storing it (up to a
+    /// tenth: a normal map's low bytes are noise); the best one always deflates.
+    fn min_saving(self) -> Option<f64> {
+        (self == PngCompression::Fast).then_some(MIN_PNG_SAVING)
+    }
 }
 
 /// Writes interleaved 16-bit RGB as a PNG (fast deflate).
@@ -45,11 +52,16 @@ pub fn encode_png16(
     rgb: Vec<u16>,
     compression: PngCompression,
 ) -> Result<Vec<u8>> {
-    // Room for the whole file at once: a Vec that grows by doubling copies the file several
-    // times into fresh memory (and the capacity it never touches costs nothing).
-    let mut bytes = Vec::with_capacity(file_bound(width * height * 6 + height));
+    let mut bytes = png16_buffer(width, height);
     encode_png16_into(&mut bytes, path, width, height, rgb, compression)?;
     Ok(bytes)
+}
+
+/// Room for a `width x height` 16-bit RGB PNG's bytes at once: a Vec that grows by doubling
+/// copies the file several times into fresh memory (and the capacity it never touches costs
+/// nothing).
+fn png16_buffer(width: usize, height: usize) -> Vec<u8> {
+    Vec::with_capacity(file_bound(width * height * 6 + height))
 }
 
 /// [`encode_png16`] streamed into `out` (a file: a 16 MP map's bytes need not sit in memory).
@@ -61,12 +73,16 @@ pub fn encode_png16_into(
     rgb: Vec<u16>,
     compression: PngCompression,
 ) -> Result<()> {
-    if rgb.len() != width * height * 3 {
-        return Err(PsError::image(path, "image size does not match its data"));
-    }
-    let row = width * 3;
-    let fill = |y: usize, out: &mut [u16]| out.copy_from_slice(&rgb[y * row..(y + 1) * row]);
-    encode_png16_rows_into(out, path, width, height, &fill, compression)
+    let size = (width, height);
+    encode_slice_into(
+        out,
+        size,
+        &rgb,
+        compression.deflate(),
+        compression.min_saving(),
+    )
+    .ok_or_else(|| PsError::image(path, "image size does not match its data"))?
+    .map_err(|e| PsError::image(path, e))
 }
 
 /// Row `y` of an image as interleaved 16-bit RGB samples (native byte order), written into a
@@ -84,41 +100,44 @@ pub fn encode_png16_rows_into(
     fill: &Rgb16Row,
     compression: PngCompression,
 ) -> Result<()> {
-    // The fast deflate, streamed, makes incompressible data larger than storing it (up to a
-    // tenth: a normal map's low bytes are noise).
-    let min_saving = (compression == PngCompression::Fast).then_some(MIN_PNG_SAVING);
-    encode_rows_into(
-        out,
-        (width, height),
-        fill,
-        compression.deflate(),
-        min_saving,
-    )
-    .map_err(|e| PsError::image(path, e))
+    let (deflate, min_saving) = (compression.deflate(), compression.min_saving());
+    encode_rows_into(out, (width, height), fill, deflate, min_saving)
+        .map_err(|e| PsError::image(path, e))
 }
 
 /// A capture frame of raw digital numbers (interleaved 16-bit RGB, `width * height * 3`
 /// samples) as 16-bit RGB PNG file bytes: the fast deflate where it saves at least
 /// 30 % of the stored size (`MIN_FRAME_SAVING`), else stored as it is.
 pub fn encode_frame_png16(width: usize, height: usize, rgb: &[u16]) -> Result<Vec<u8>> {
+    let mut bytes = png16_buffer(width, height);
+    let (deflate, min_saving) = (png::Compression::Fast, Some(MIN_FRAME_SAVING));
+    encode_slice_into(&mut bytes, (width, height), rgb, deflate, min_saving)
+        .ok_or_else(|| PsError::Invalid("DN image size does not match its data".into()))?
+        .map_err(|e| PsError::Invalid(format!("PNG encoding failed: {e}")))?;
+    Ok(bytes)
+}
+
+/// [`encode_rows_into`] of interleaved 16-bit RGB held whole; `None` where `rgb` is not
+/// `width * height * 3` samples long.
+fn encode_slice_into(
+    out: impl std::io::Write,
+    (width, height): (usize, usize),
+    rgb: &[u16],
+    deflate: png::Compression,
+    min_saving: Option<f64>,
+) -> Option<std::result::Result<(), png::EncodingError>> {
     if rgb.len() != width * height * 3 {
-        return Err(PsError::Invalid(
-            "DN image size does not match its data".into(),
-        ));
+        return None;
     }
     let row = width * 3;
     let fill = |y: usize, out: &mut [u16]| out.copy_from_slice(&rgb[y * row..(y + 1) * row]);
-    let mut bytes = Vec::with_capacity(file_bound(width * height * 6 + height));
-    let deflate = png::Compression::Fast;
-    encode_rows_into(
-        &mut bytes,
+    Some(encode_rows_into(
+        out,
         (width, height),
         &fill,
         deflate,
-        Some(MIN_FRAME_SAVING),
-    )
-    .map_err(|e| PsError::Invalid(format!("PNG encoding failed: {e}")))?;
-    Ok(bytes)
+        min_saving,
+    ))
 }
 
 /// `height` rows that `fill` makes, as a 16-bit RGB PNG written to `out` with `deflate`, or
